@@ -1,0 +1,466 @@
+"""Capture sessions: one raw mosaic per light, written as a polarshape capture folder.
+
+:func:`run_capture_session` switches the lights of a :class:`~.lights.LightRig` one at a time,
+captures with any :class:`~.camera.Camera` (averaging frames, optionally bracketing the exposure
+to avoid saturation), saves each light's frame atomically as soon as it is captured, resumes an
+interrupted session by skipping lights whose frames are on disk, and finally writes
+``capture.yaml`` (format ``polarshape-capture/1``, see the README / spec/capture-format.md).
+
+:func:`capture_session` does the same from a session YAML file (what ``polarshape capture
+session.yaml --out DIR`` runs)::
+
+    camera:
+      backend: aravis            # aravis | simulated | fake_gige (test camera on 127.0.0.1)
+      address: 192.168.1.20      # aravis: IP address (preferred) or Aravis device id
+      trigger: software          # off | software | line0
+      packet_size: 9000          # optional
+      pixel_format: PolarizeMono12p
+      exposure_us: 20000
+      gain_db: 0.0
+      roi: [0, 0, 2448, 2048]    # optional, x y width height
+      projection: perspective    # default orthographic; goes into capture.yaml's camera block
+      intrinsics: {fx: 2500, fy: 2500, cx: 1224, cy: 1024}   # raw pixels; needed for perspective
+    rig:
+      type: serial               # simulated | manual | serial
+      port: /dev/ttyACM0         # serial
+      strobe: false              # camera ExposureActive on Line1
+    lights:                      # direction (unit vector to the light) or position (m), camera frame;
+      - {direction: [0.3, -0.2, -0.93]}                  # optional with a simulated scene
+      - {direction: [-0.3, -0.2, -0.93], intensity: 1.0}
+    capture:
+      frames_per_light: 4
+      exposure_bracket: [5000, 10000, 20000, 40000]   # optional, µs
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from collections.abc import Callable, Mapping, Sequence
+from contextlib import ExitStack
+from pathlib import Path
+from typing import Any, Literal
+
+import cv2
+import numpy as np
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from polarshape.acquisition.camera import PIXEL_FORMATS, Camera, CameraError, Frame
+from polarshape.acquisition.lights import LightRig, LightSpec
+from polarshape.io.atomic import OutputExistsError, atomic_path, atomic_write_text
+
+logger = logging.getLogger(__name__)
+
+__all__ = [
+    "CAPTURE_FORMAT",
+    "SATURATION_LIMIT",
+    "SessionConfig",
+    "average_frames",
+    "capture_session",
+    "load_session_config",
+    "run_capture_session",
+    "saturated_fraction",
+]
+
+CAPTURE_FORMAT = "polarshape-capture/1"
+#: Largest fraction of saturated pixels an exposure of a bracket may have to be chosen.
+SATURATION_LIMIT = 0.001
+DEFAULT_MOSAIC = {"layout": [[90, 45], [135, 0]], "angles": "counterclockwise_on_screen"}
+
+
+def saturated_fraction(frame: Frame) -> float:
+    """Fraction of pixels of ``frame.image`` at the top count ``2**bit_depth - 1``."""
+    top = (1 << frame.bit_depth) - 1
+    return float(np.count_nonzero(frame.image >= top)) / max(1, frame.image.size)
+
+
+def average_frames(frames: Sequence[Frame]) -> np.ndarray:
+    """Mean of the frames' mosaics, rounded to whole counts.
+
+    Args:
+        frames: N >= 1 frames of one (H, W) shape and bit depth.
+
+    Returns:
+        (H, W) ``uint16`` mean, in counts (rounding costs at most half a count).
+    """
+    if not frames:
+        raise ValueError("average_frames needs at least one frame")
+    shape = frames[0].image.shape
+    for f in frames:
+        if f.image.shape != shape or f.bit_depth != frames[0].bit_depth:
+            raise ValueError(f"frames to average differ: shape {f.image.shape} / {f.bit_depth} bit vs "
+                             f"{shape} / {frames[0].bit_depth} bit")
+    total = np.zeros(shape, dtype=np.float64)  # (H, W)
+    for f in frames:
+        total += f.image
+    return np.rint(total / len(frames)).astype(np.uint16)
+
+
+def _write_png(path: Path, image: np.ndarray, bit_depth: int, *, overwrite: bool) -> None:
+    dtype = np.uint8 if bit_depth <= 8 else np.uint16
+    with atomic_path(path, overwrite=overwrite) as tmp:
+        if not cv2.imwrite(str(tmp), image.astype(dtype)):
+            raise OSError(f"could not encode {path} as PNG")
+
+
+def _light_done(frames_dir: Path, index: int) -> dict[str, Any] | None:
+    png, meta = frames_dir / f"{index:03d}.png", frames_dir / f"{index:03d}.json"
+    if png.exists() and meta.exists():
+        try:
+            return json.loads(meta.read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            return None
+    return None
+
+
+def _capture_light(
+    camera: Camera,
+    *,
+    frames_per_light: int,
+    bracket: Sequence[float] | None,
+    saturation_limit: float,
+    timeout_s: float,
+) -> tuple[list[Frame], dict[str, Any]]:
+    """Frames of one light: choose the exposure (longest with few saturated pixels), then average."""
+    info: dict[str, Any] = {}
+    first: Frame | None = None
+    if bracket:
+        tried = []
+        for exposure in sorted(bracket, reverse=True):
+            camera.configure(exposure_us=float(exposure))
+            first = camera.capture(timeout_s=timeout_s)
+            fraction = saturated_fraction(first)
+            tried.append({"exposure_us": first.exposure_us, "saturated_fraction": fraction})
+            if fraction < saturation_limit:
+                break
+        else:
+            logger.warning("every exposure of the bracket saturates more than %.2f %% of the pixels; using "
+                           "the shortest (%s µs): lower the gain or the light", 100 * saturation_limit,
+                           min(bracket))
+        info["bracket"] = tried
+    frames = [first] if first is not None else []
+    while len(frames) < frames_per_light:
+        frames.append(camera.capture(timeout_s=timeout_s))
+    return frames, info
+
+
+def _frame_metadata(frames: Sequence[Frame], extra: Mapping[str, Any]) -> dict[str, Any]:
+    last = frames[-1]
+    return {
+        "exposure_us": float(last.exposure_us),
+        "gain_db": float(last.gain_db),
+        "pixel_format": last.pixel_format,
+        "bit_depth": int(last.bit_depth),
+        "frames_averaged": len(frames),
+        "frame_ids": [int(f.frame_id) for f in frames],
+        "frame_counts": [int(f.metadata.get("frame_count", f.frame_id)) for f in frames],
+        "timestamps_ns": [int(f.timestamp_ns) for f in frames],
+        "offset_xy": [int(v) for v in last.offset_xy],
+        "saturated_fraction": saturated_fraction(last),
+        **extra,
+    }
+
+
+def run_capture_session(
+    camera: Camera,
+    rig: LightRig,
+    out_dir: str | Path,
+    *,
+    frames_per_light: int = 1,
+    exposure_bracket: Sequence[float] | None = None,
+    resume: bool = True,
+    camera_info: Mapping[str, Any] | None = None,
+    saturation_limit: float = SATURATION_LIMIT,
+    timeout_s: float = 5.0,
+) -> Path:
+    """Capture one raw mosaic per light into the capture folder ``out_dir``.
+
+    For each light: ``rig.switch(i)``; with ``exposure_bracket`` the longest exposure whose
+    frame has fewer than ``saturation_limit`` (0.1 %) saturated pixels is chosen; then
+    ``frames_per_light`` frames are averaged and saved at once to ``frames/NNN.png`` (8- or
+    16-bit PNG, counts) with ``frames/NNN.json`` (exposure, frame ids, …), each atomically. When
+    ``resume`` is true, lights whose two files exist are skipped, so a session interrupted by an
+    error or Ctrl-C continues where it stopped. Finally all lights are switched off and
+    ``capture.yaml`` is written; a light captured at a shorter exposure gets a proportionally
+    lower ``intensity`` (intensity = rig intensity x exposure / longest exposure), so the
+    frames stay comparable.
+
+    Args:
+        camera: an opened or openable camera (opened here if it has ``open``).
+        rig: the lights.
+        out_dir: capture folder (created; an existing complete capture is returned as is when
+            resuming, refused otherwise).
+        frames_per_light: frames averaged per light (>= 1).
+        exposure_bracket: candidate exposure times in µs, or None to keep the camera's.
+        resume: skip lights already on disk (otherwise existing frames are an error).
+        camera_info: extra keys of capture.yaml's ``camera`` block (``projection``,
+            ``intrinsics``, ``distortion``, ``model``, ``black_level``, ``mosaic``).
+        saturation_limit: see above.
+        timeout_s: per-frame capture timeout.
+
+    Returns:
+        The path of the written ``capture.yaml``.
+    """
+    if frames_per_light < 1:
+        raise ValueError(f"frames_per_light must be >= 1; got {frames_per_light}")
+    if exposure_bracket is not None and (not exposure_bracket or min(exposure_bracket) <= 0):
+        raise ValueError(f"exposure_bracket must be a non-empty list of positive µs values; got {exposure_bracket}")
+    info = dict(camera_info or {})
+    if info.get("projection") == "perspective" and not info.get("intrinsics"):
+        raise ValueError("camera projection 'perspective' needs intrinsics {fx, fy, cx, cy} (raw-mosaic pixels): run "
+                         "`polarshape calibrate intrinsics` first, or use projection 'orthographic'")
+    for index, spec in enumerate(rig.lights):
+        if spec.direction is not None and not spec.direction[2] < 0:
+            raise ValueError(f"light {index}: direction {spec.direction} has z >= 0 (behind the object); directions "
+                             "point from the object to the light, camera frame (z forward), so lights have z < 0")
+    out = Path(out_dir)
+    frames_dir = out / "frames"
+    capture_yaml = out / "capture.yaml"
+    n = rig.n_lights
+    if capture_yaml.exists():
+        if resume and all(_light_done(frames_dir, i) is not None for i in range(n)):
+            logger.info("%s is complete; nothing to capture", capture_yaml)
+            return capture_yaml
+        raise OutputExistsError(f"{capture_yaml} already exists; choose another --out folder")
+    if not resume and frames_dir.exists() and any(frames_dir.iterdir()):
+        raise OutputExistsError(f"{frames_dir} already holds frames; pass resume=True to continue that "
+                                "session, or choose another output folder")
+    frames_dir.mkdir(parents=True, exist_ok=True)
+    if callable(getattr(camera, "open", None)):
+        camera.open()
+
+    metadata: list[dict[str, Any]] = []
+    for index in range(n):
+        done = _light_done(frames_dir, index) if resume else None
+        if done is not None:
+            logger.info("light %d/%d already captured; skipping", index + 1, n)
+            metadata.append(done)
+            continue
+        rig.switch(index)
+        frames, info = _capture_light(camera, frames_per_light=frames_per_light, bracket=exposure_bracket,
+                                      saturation_limit=saturation_limit, timeout_s=timeout_s)
+        image = average_frames(frames)  # (H, W) uint16
+        meta = _frame_metadata(frames, {"light_index": index, **info})
+        png = frames_dir / f"{index:03d}.png"
+        _write_png(png, image, meta["bit_depth"], overwrite=True)  # a PNG without its JSON is a leftover
+        atomic_write_text(frames_dir / f"{index:03d}.json", json.dumps(meta, indent=1), overwrite=True)
+        logger.info("light %d/%d: %d frame(s) at %.0f µs, %.3f %% saturated", index + 1, n, len(frames),
+                    meta["exposure_us"], 100 * meta["saturated_fraction"])
+        metadata.append(meta)
+    rig.all_off()
+
+    document = _capture_document(camera, rig, metadata, camera_info)
+    atomic_write_text(capture_yaml, yaml.safe_dump(document, sort_keys=False))
+    logger.info("wrote %s (%d lights)", capture_yaml, n)
+    return capture_yaml
+
+
+def _capture_document(camera: Camera, rig: LightRig, metadata: list[dict[str, Any]],
+                      camera_info: Mapping[str, Any] | None) -> dict[str, Any]:
+    bit_depths = {m["bit_depth"] for m in metadata}
+    if len(bit_depths) != 1:
+        raise CameraError(f"the frames of this session have different bit depths {sorted(bit_depths)}: "
+                          "recapture with one pixel format")
+    longest = max(m["exposure_us"] for m in metadata)
+    model = getattr(camera, "model", "") or type(camera).__name__
+    block: dict[str, Any] = {"model": str(model), "projection": "orthographic", "bit_depth": bit_depths.pop(),
+                             "black_level": 0, "mosaic": dict(DEFAULT_MOSAIC)}
+    block.update(dict(camera_info or {}))
+    lights = []
+    for index, (spec, meta) in enumerate(zip(rig.lights, metadata, strict=True)):
+        entry = spec.to_capture_entry()
+        entry.pop("name", None)
+        entry["intensity"] = float(spec.intensity * meta["exposure_us"] / longest)
+        entry["frame"] = f"frames/{index:03d}.png"
+        lights.append(entry)
+    return {"format": CAPTURE_FORMAT, "camera": block, "lights": lights}
+
+
+# -- session files --------------------------------------------------------------------------------
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class CameraSection(_Strict):
+    """``camera:`` of a session file."""
+
+    backend: Literal["aravis", "simulated", "fake_gige"]
+    address: str | None = None
+    scene: str | None = None
+    trigger: Literal["off", "software", "line0"] = "software"
+    packet_size: int | None = None
+    frame_rate_hz: float | None = None
+    pixel_format: str | None = None
+    exposure_us: float | None = Field(None, gt=0)
+    gain_db: float | None = None
+    roi: tuple[int, int, int, int] | None = None
+    projection: Literal["orthographic", "perspective"] = "orthographic"
+    intrinsics: dict[str, float] | None = None
+    distortion: list[float] | None = None
+    black_level: float = 0
+    model: str | None = None
+
+    @model_validator(mode="after")
+    def _check(self) -> CameraSection:
+        if self.backend == "aravis" and not self.address:
+            raise ValueError("camera.address is required for backend 'aravis' (the camera's IP address)")
+        if self.backend == "simulated" and not self.scene:
+            raise ValueError("camera.scene (a scene YAML file) is required for backend 'simulated'")
+        if self.projection == "perspective" and not self.intrinsics:
+            raise ValueError("camera.intrinsics {fx, fy, cx, cy} is required with projection 'perspective' (run "
+                             "`polarshape calibrate intrinsics` first), or set projection: orthographic")
+        if self.pixel_format is not None and self.pixel_format not in PIXEL_FORMATS:
+            raise ValueError(f"camera.pixel_format {self.pixel_format!r}: use one of {sorted(PIXEL_FORMATS)}")
+        return self
+
+
+class LightEntry(_Strict):
+    """One light of ``lights.list``."""
+
+    direction: tuple[float, float, float] | None = None
+    position: tuple[float, float, float] | None = None
+    intensity: float = Field(1.0, gt=0)
+    name: str = ""
+
+    def to_spec(self) -> LightSpec:
+        return LightSpec(direction=self.direction, position=self.position, intensity=self.intensity, name=self.name)
+
+
+class RigSection(_Strict):
+    """``rig:`` of a session file."""
+
+    type: Literal["simulated", "manual", "serial"]
+    port: str | None = None
+    baudrate: int = 115200
+    settle_s: float = Field(0.05, ge=0)
+    strobe: bool = False
+
+    @model_validator(mode="after")
+    def _check(self) -> RigSection:
+        if self.type == "serial" and not self.port:
+            raise ValueError("rig.port is required for rig type 'serial' (e.g. /dev/ttyACM0)")
+        return self
+
+
+class CaptureSection(_Strict):
+    """``capture:`` of a session file."""
+
+    frames_per_light: int = Field(1, ge=1)
+    exposure_bracket: list[float] | None = None
+    timeout_s: float = Field(5.0, gt=0)
+
+
+class SessionConfig(_Strict):
+    """A capture session file (see the module docstring)."""
+
+    camera: CameraSection
+    rig: RigSection
+    lights: list[LightEntry] = []
+    capture: CaptureSection = Field(default_factory=lambda: CaptureSection.model_validate({}))
+
+    @model_validator(mode="after")
+    def _check(self) -> SessionConfig:
+        if not self.lights and not (self.rig.type == "simulated" and self.camera.backend == "simulated"):
+            raise ValueError("lights: list one entry per light (direction or position, camera frame); only "
+                             "a simulated scene can supply its own")
+        return self
+
+
+def load_session_config(path: str | Path) -> SessionConfig:
+    """Read and validate a session YAML file; errors name the file and the field."""
+    path = Path(path)
+    try:
+        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except OSError as exc:
+        raise ValueError(f"cannot read the session file {path}: {exc}") from exc
+    except yaml.YAMLError as exc:
+        raise ValueError(f"{path} is not valid YAML: {exc}") from exc
+    try:
+        return SessionConfig.model_validate(data)
+    except ValidationError as exc:
+        raise ValueError(f"{path}: invalid session file:\n{exc}") from exc
+
+
+def _lights_of(config: SessionConfig, camera: Any) -> list[LightSpec]:
+    if config.lights:
+        return [entry.to_spec() for entry in config.lights]
+    # a simulated scene knows its lights
+    scene_lights = getattr(getattr(camera, "config", None), "lights", None)
+    if not scene_lights:
+        raise ValueError("lights is empty and the camera has no scene lights: list the lights")
+    specs = []
+    for light in scene_lights:
+        light = light.to_light() if hasattr(light, "to_light") else light
+        specs.append(LightSpec(direction=getattr(light, "direction", None), position=getattr(light, "position", None),
+                               intensity=float(getattr(light, "intensity", 1.0)) or 1.0))
+    return specs
+
+
+def capture_session(
+    session_yaml: str | Path,
+    out_dir: str | Path,
+    *,
+    resume: bool = True,
+    input_fn: Callable[[str], str] = input,
+) -> Path:
+    """Run the capture session described by ``session_yaml`` into ``out_dir``.
+
+    Returns the path of the written ``capture.yaml``. ``input_fn`` answers a manual rig's prompts.
+    """
+    from polarshape.acquisition.lights import ManualLightRig, SerialLightRig, SimulatedLightRig
+
+    config = load_session_config(session_yaml)
+    cam_cfg, rig_cfg = config.camera, config.rig
+    with ExitStack() as stack:
+        camera: Any
+        light_target: Any = None
+        if cam_cfg.backend == "simulated":
+            from polarshape.acquisition.simulated import SimulatedCamera
+
+            scene = Path(cam_cfg.scene or "")
+            if not scene.is_absolute():
+                scene = Path(session_yaml).parent / scene
+            camera = stack.enter_context(SimulatedCamera(scene))
+        else:
+            from polarshape.acquisition.aravis import AravisCamera
+
+            address = cam_cfg.address or "127.0.0.1"
+            if cam_cfg.backend == "fake_gige":
+                from polarshape.acquisition.fake_gige import FakeGigECamera
+
+                # the fake's synthetic scene follows a simulated rig
+                light_target = stack.enter_context(FakeGigECamera(address, width=256, height=256))
+            camera = stack.enter_context(AravisCamera(
+                address, trigger=cam_cfg.trigger, packet_size=cam_cfg.packet_size,
+                frame_rate_hz=cam_cfg.frame_rate_hz))
+        camera.configure(exposure_us=cam_cfg.exposure_us, gain_db=cam_cfg.gain_db, pixel_format=cam_cfg.pixel_format)
+        if cam_cfg.roi is not None:
+            if not hasattr(camera, "set_roi"):
+                raise ValueError(f"camera.roi: the {cam_cfg.backend} backend has no region of interest")
+            camera.set_roi(*cam_cfg.roi)
+        specs = _lights_of(config, camera)
+        strobe = camera if rig_cfg.strobe else None
+        rig: Any
+        if rig_cfg.type == "simulated":
+            rig = SimulatedLightRig(light_target or camera, specs, strobe_camera=strobe)
+        elif rig_cfg.type == "manual":
+            rig = ManualLightRig(specs, input_fn=input_fn, strobe_camera=strobe)
+        else:
+            rig = SerialLightRig(rig_cfg.port or "", specs, baudrate=rig_cfg.baudrate,
+                                 settle_s=rig_cfg.settle_s, strobe_camera=strobe)
+        stack.enter_context(rig)
+        info: dict[str, Any] = {"projection": cam_cfg.projection, "black_level": cam_cfg.black_level}
+        if cam_cfg.model:
+            info["model"] = cam_cfg.model
+        if cam_cfg.intrinsics is not None:
+            info["intrinsics"] = cam_cfg.intrinsics
+        if cam_cfg.distortion is not None:
+            info["distortion"] = cam_cfg.distortion
+        return run_capture_session(
+            camera, rig, out_dir, frames_per_light=config.capture.frames_per_light,
+            exposure_bracket=config.capture.exposure_bracket, resume=resume, camera_info=info,
+            timeout_s=config.capture.timeout_s,
+        )

@@ -1,0 +1,26 @@
+"""The Fresnel Microfacet BRDF forward model (spec ../shared/spec/fmbrdf.md) and its baselines.
+
+Main entry point: :func:`fmbrdf_stokes`. Material tables for repeated evaluation:
+:func:`build_tables`. Baselines of spec §10: :mod:`polarshape.brdf.baselines`.
+"""
+
+from polarshape.brdf.baselines import (
+    MODELS,
+    baek_pbrdf_stokes,
+    lambertian_stokes,
+    oren_nayar_stokes,
+    torrance_sparrow_stokes,
+)
+from polarshape.brdf.fmbrdf import PARAM_BOUNDS, FMBRDFTables, build_tables, fmbrdf_stokes
+
+__all__ = [
+    "fmbrdf_stokes",
+    "build_tables",
+    "FMBRDFTables",
+    "PARAM_BOUNDS",
+    "MODELS",
+    "lambertian_stokes",
+    "oren_nayar_stokes",
+    "torrance_sparrow_stokes",
+    "baek_pbrdf_stokes",
+]

@@ -1,0 +1,338 @@
+"""Fast, differentiable body (diffuse) reflection of the FMBRDF via per-material tables (spec §7).
+
+The body term (paper eq. 13–22, 24) is
+
+    s_b = (k_b/π) · G1(L) G1(V)/(N·V) · J(V, L),
+    J   = ∫_Ω∫_Ω [n·V]₊ D(n) T-Stokes(θ_o, ψ(n)) · f(n, n_i) · [n_i·L]₊ D(n_i) T+(θ_i) dω_n dω_{n_i},
+    f   = exp(κ n·n_i) / Z(n_i),   Z(n_i) = ∫_Ω exp(κ n·n_i) D(n) dω_n        (eq. 19–21)
+
+With G1(ω) = cos θ_ω / P(ω) (spec §4) this is s_b = (k_b/π)(N·L)·W with the bounded, smooth
+
+    W(θ_V, θ_L, Δφ) = J / (P(V) P(L)),
+
+a function of three angles only (D is isotropic): the polar angles of V and L from N and their
+azimuth difference. We tabulate W for the current (μ, α, β, κ) and interpolate it trilinearly.
+
+Building the table (all torch, so W is differentiable in μ, α, β, κ):
+- polar angles θ of the facets: a composite Gauss–Legendre rule graded to α
+  (:mod:`polarshape.brdf.quadrature`); azimuths: Gauss–Legendre on the arc where n·ω > 0, whose
+  ends are known in closed form, so the [·]₊ clipping of masking/shadowing is integrated exactly;
+- the correlation kernel exp(κ(n·n_i − 1)) = Σ_m k_m(θ, θ') cos m(φ − φ') (Fourier series in the
+  azimuth difference; the coefficients are modified Bessel functions, computed by FFT), which
+  turns the 4-D integral into, for each m, a product of small matrices
+  A_m = H_m(θ_V) · k_m · G_m(θ_L)ᵀ — the route of spec §7 with a Fourier rather than a spherical-
+  harmonic expansion. κ = 0 keeps only m = 0 (the separable case);
+- J(θ_V, θ_L, Δφ) = Σ_m A_m cos mΔφ (intensity and s1), Σ_m A_m sin mΔφ (s2).
+
+Polarisation is tabulated in a frame attached to the geometry, e'_x = normalise(N − (N·V)V) (the
+projection of N), and rotated into the pixel frame at evaluation; the body AoLP is thus ∥ to the
+plane of N and V where the exit transmission dominates (spec §5, §7).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from polarshape.brdf.distribution import d_shape
+from polarshape.brdf.fresnel import fresnel
+from polarshape.brdf.geometry import (
+    angle_between,
+    dot,
+    double_angle,
+    rotate_linear_stokes,
+    safe_atan2,
+    safe_normalize,
+    stokes_frame,
+    tiny,
+)
+from polarshape.brdf.quadrature import HALF_PI, gauss_legendre, theta_cutoff, theta_rule
+
+
+@dataclass(frozen=True)
+class BodyTable:
+    """W = J / (P(V) P(L)) of one material on a regular grid.
+
+    Attributes:
+        values: (3, G, G, F) float64: (log W0, WQ/W0, WU/W0) over θ_V (G), θ_L (G), Δφ ∈ [0, π] (F).
+            The polar angles are sampled uniformly in the warped coordinate of :class:`ThetaWarp`
+            (dense near grazing). WQ, WU are in the frame e'_x = projection of N (see module doc);
+            WU is odd in Δφ and stored for Δφ ≥ 0. The logarithm and the ratios are what vary
+            slowly (W0 changes by orders of magnitude with Δφ at large κ), so they are what is
+            interpolated.
+        warp: the θ ↦ grid-coordinate map.
+        n_modes: number of azimuthal Fourier modes used (1 = separable, κ = 0).
+    """
+
+    values: Tensor
+    warp: "ThetaWarp"
+    n_modes: int
+
+
+@dataclass(frozen=True)
+class ThetaWarp:
+    """Monotone map θ ∈ [0, π/2] ↦ t ∈ [−1, 1] whose uniform grid is dense near grazing.
+
+    u(θ) = θ − c·ε·asinh((π/2 − θ)/ε): spacing ≈ uniform away from grazing and ≈ 1/(1 + c) of it
+    within ε of π/2, where the body term varies on the scale of α (Fresnel transmission and the
+    horizon of the facet distribution). ε = clip(α/2, 0.005, 0.2); c puts about a third of the
+    grid in that layer.
+    """
+
+    eps: float
+    c: float
+
+    @staticmethod
+    def for_alpha(alpha: float) -> "ThetaWarp":
+        eps = min(max(0.5 * alpha, 0.005), 0.2)
+        return ThetaWarp(eps=eps, c=0.25 * math.pi / (eps * math.asinh(HALF_PI / eps)))
+
+    def _u(self, theta: Tensor | np.ndarray) -> Tensor | np.ndarray:
+        lib = torch if isinstance(theta, Tensor) else np
+        return theta - self.c * self.eps * lib.arcsinh((HALF_PI - theta) / self.eps)
+
+    def to_grid(self, theta: Tensor) -> Tensor:
+        """(...) θ -> (...) normalised grid coordinate in [−1, 1] (differentiable)."""
+        u0, u1 = float(self._u(np.float64(0.0))), float(self._u(np.float64(HALF_PI)))
+        return (self._u(theta) - u0) * (2.0 / (u1 - u0)) - 1.0
+
+    def nodes(self, n: int) -> np.ndarray:
+        """(n,) θ at the n uniformly spaced grid coordinates (θ_0 = 0, θ_{n−1} = π/2)."""
+        fine = np.linspace(0.0, HALF_PI, 200001)
+        uf = self._u(fine)
+        out = np.interp(np.linspace(uf[0], uf[-1], n), uf, fine)
+        out[0], out[-1] = 0.0, HALF_PI
+        return out
+
+
+def arc_nodes(theta: np.ndarray, theta_w: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Gauss–Legendre azimuth nodes on the arc where a facet at polar angle θ sees direction ω.
+
+    For ω at polar angle θ_ω and azimuth 0, n·ω = sin θ sin θ_ω cos φ + cos θ cos θ_ω > 0 exactly on
+    |φ| < φ_c = arccos(−cot θ cot θ_ω) (the whole circle when that is ≤ −1).
+
+    Args:
+        theta: (Q,) facet polar angles; theta_w: (G,) polar angles of ω; n: nodes per arc.
+
+    Returns:
+        phi, weights: (G, Q, n) each.
+    """
+    x, w = gauss_legendre(n)
+    st, ct = np.sin(theta)[None, :], np.cos(theta)[None, :]
+    sw, cw = np.sin(theta_w)[:, None], np.cos(theta_w)[:, None]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r = (ct * cw) / (st * sw)
+    full = ~(r < 1.0)  # includes r = inf / nan (θ or θ_ω = 0)
+    phic = np.where(full, math.pi, np.arccos(-np.clip(np.nan_to_num(r, nan=1.0, posinf=1.0), -1.0, 1.0)))
+    return phic[..., None] * x, phic[..., None] * w
+
+
+class ArcFourier(torch.autograd.Function):
+    """Azimuthal Fourier coefficients on the arc rules: for m = 0..M−1,
+    even[c, m] = Σ_n h_even[c, ..., n] cos(m φ_n) and odd[m] = Σ_n h_odd[..., n] sin(m φ_n).
+
+    cos mφ and sin mφ come from the rotation recurrence (angle addition) in both passes, so no
+    (…, n, M) tensor is ever stored: memory O(G·Q·n) instead of O(G·Q·n·M), and the backward pass
+    (the same sums transposed) costs as much as the forward one.
+    """
+
+    @staticmethod
+    def _modes(phi: Tensor, n_modes: int):  # noqa: ANN205
+        c1, s1 = torch.cos(phi), torch.sin(phi)
+        c, s = torch.ones_like(phi), torch.zeros_like(phi)
+        for _ in range(n_modes):
+            yield c, s
+            c, s = c * c1 - s * s1, s * c1 + c * s1
+
+    @staticmethod
+    def forward(ctx, h_even: Tensor, h_odd: Tensor, phi: Tensor, n_modes: int) -> tuple[Tensor, Tensor]:  # noqa: ANN001
+        ctx.save_for_backward(phi)
+        ctx.n_modes = n_modes
+        even = torch.stack([(h_even * c).sum(-1) for c, _ in ArcFourier._modes(phi, n_modes)], dim=1)
+        odd = torch.stack([(h_odd * s).sum(-1) for _, s in ArcFourier._modes(phi, n_modes)], dim=0)
+        return even, odd
+
+    @staticmethod
+    def backward(ctx, g_even: Tensor, g_odd: Tensor):  # noqa: ANN001, ANN205
+        (phi,) = ctx.saved_tensors
+        d_even = torch.zeros((g_even.shape[0], *phi.shape), dtype=phi.dtype, device=phi.device)
+        d_odd = torch.zeros_like(phi)
+        for i, (c, s) in enumerate(ArcFourier._modes(phi, ctx.n_modes)):
+            d_even += g_even[:, i].unsqueeze(-1) * c
+            d_odd += g_odd[i].unsqueeze(-1) * s
+        return d_even, d_odd, None, None
+
+
+def n_fourier_modes(kappa: float, alpha: float, beta: float, *, log_tol: float = 14.0, cap: int = 160) -> int:
+    """Azimuthal modes needed for exp(κ(n·n_i − 1)): the m-th coefficient is e^{−κ(1−cc')} I_m(κ s s'),
+    which decays like exp(−m²/(2κ s s')), with s, s' ≤ sin θ_cut. Returns M + 1 (m = 0..M)."""
+    if kappa <= 0.0:
+        return 1
+    z = kappa * math.sin(theta_cutoff(alpha, beta)) ** 2
+    return min(cap, int(math.ceil(math.sqrt(2.0 * z * log_tol))) + 3)
+
+
+def build_body_table(
+    ior: Tensor,
+    alpha: Tensor,
+    beta: Tensor,
+    kappa: Tensor,
+    c: Tensor,
+    *,
+    n_grid: int = 65,
+    n_dphi: int | None = None,
+    n_theta: int = 6,
+    max_width: float = 0.1,
+    log_tol: float = 14.0,
+    layout: tuple[float, float, float] | None = None,
+) -> BodyTable:
+    """Tabulate W(θ_V, θ_L, Δφ) for one material (differentiable in μ, α, β, κ, c).
+
+    Args:
+        ior, alpha, beta, kappa, c: 0-dim float64 tensors (c = D's normalisation, eq. 5).
+        n_grid: grid points in θ_V and θ_L over [0, π/2].
+        n_dphi: grid points in Δφ over [0, π]; default: 2 when κ = 0 (W does not depend on Δφ:
+            the separable case), 129 for weak and 257 for strong correlation (W0 then varies by
+            orders of magnitude with Δφ).
+        n_theta: Gauss–Legendre points per θ panel; max_width: widest θ panel (rad).
+        log_tol: Fourier modes of the correlation kernel are kept down to e^−log_tol of the first.
+        layout: (α, β, κ) at which to place nodes, grid warp and mode count (default: the values
+            themselves). A fixed layout makes the table a smooth function of the parameters with a
+            fixed discretisation (for gradient checks and consistent line searches).
+
+    Returns:
+        :class:`BodyTable`.
+    """
+    dev, dt = alpha.device, alpha.dtype
+    a, b, kap = layout if layout is not None else (float(alpha.detach()), float(beta.detach()), float(kappa.detach()))
+    tq_np, wq_np = theta_rule(a, b, n_theta, max_width=max_width)
+    n_modes = n_fourier_modes(kap, a, b, log_tol=log_tol)
+    if kappa.requires_grad:
+        n_modes = max(n_modes, 3)  # ∂/∂κ at κ = 0 needs the m = 0, 1 modes: no separable shortcut
+    n_phi = max(32, n_modes + 24)
+    if n_dphi is None:
+        n_dphi = 2 if n_modes == 1 else (129 if n_modes <= 20 else 257)
+    warp = ThetaWarp.for_alpha(a)
+    tg_np = warp.nodes(n_grid)
+    phi_np, wphi_np = arc_nodes(tq_np, tg_np, n_phi)  # (G, Q, n)
+
+    def T(x: np.ndarray) -> Tensor:
+        return torch.as_tensor(x, dtype=dt, device=dev)
+
+    tq, wq, tg, phi, wphi = T(tq_np), T(wq_np), T(tg_np), T(phi_np), T(wphi_np)
+    sq, cq = torch.sin(tq), torch.cos(tq)
+    sg, cg = torch.sin(tg)[:, None, None], torch.cos(tg)[:, None, None]
+    n_x, n_y, n_z = sq[None, :, None] * torch.cos(phi), sq[None, :, None] * torch.sin(phi), cq[None, :, None]
+    cos_o = (n_x * sg + n_z * cg).clamp_min(0.0)  # n·ω with ω = (sin θ_g, 0, cos θ_g)
+    fr = fresnel(cos_o, ior)  # spec §5 transmission at θ_o
+    # facet normal in the frame e'_x = (−cos θ_g, 0, sin θ_g), e'_y = (0, 1, 0) (projection of N)
+    ax = -n_x * cg + n_z * sg
+    r2 = (ax * ax + n_y * n_y).clamp_min(tiny(dt))
+    cos2, sin2 = (ax * ax - n_y * n_y) / r2, 2.0 * ax * n_y / r2
+    base = wphi * cos_o  # arc weight × [n·ω]₊
+    h = torch.stack([base * fr.t_plus, base * (-fr.t_minus) * cos2, base * (-fr.t_minus) * sin2])  # (3,G,Q,n)
+
+    bq = wq * sq * c * d_shape(tq, alpha, beta)  # θ weight × sin θ × D(θ)   (Q,)
+    area = (base.sum(-1) * bq).sum(-1)  # P(θ_g) (spec §4)   (G,)
+
+    m = torch.arange(n_modes, dtype=dt, device=dev)
+    # intensity and s1 are even in φ (cosine modes), s2 odd (sine modes)
+    h_even, h_odd = ArcFourier.apply(h[:2], h[2], phi, n_modes)  # (2, M, G, Q), (M, G, Q)
+    h_modes = torch.cat([h_even, h_odd.unsqueeze(0)]) * bq  # (3, M, G, Q)
+
+    if n_modes == 1:
+        k_m = torch.ones(1, tq.numel(), tq.numel(), dtype=dt, device=dev)
+    else:
+        n_psi = 2 * n_modes + 64
+        psi = torch.arange(n_psi, dtype=dt, device=dev) * (2.0 * math.pi / n_psi)
+        arg = (cq[:, None] * cq[None, :] - 1.0).unsqueeze(-1) + (sq[:, None] * sq[None, :]).unsqueeze(-1) * torch.cos(psi)
+        spec = torch.fft.rfft(torch.exp(kappa * arg), dim=-1).real[..., :n_modes] / n_psi  # (Q,Q,M)
+        spec = spec * torch.where(m == 0, 1.0, 2.0)
+        k_m = spec.permute(2, 0, 1)  # (M,Q,Q): exp(κ(n·n_i−1)) = Σ k_m cos m(φ−φ')
+    z = 2.0 * math.pi * (bq[:, None] * k_m[0]).sum(0)  # Z(θ') of eq. 20   (Q,)
+    g_modes = h_modes[0] / z  # entry side: [n_i·L]₊ D T+(θ_i) / Z   (M, G, Q)
+    inner = torch.matmul(k_m, g_modes.transpose(1, 2))  # (M, Q, G)
+    amp = torch.matmul(h_modes, inner)  # (3, M, G_V, G_L)
+
+    dphi = torch.linspace(0.0, math.pi, n_dphi, dtype=dt, device=dev)
+    md = m[:, None] * dphi  # (M, F)
+    j = torch.stack(
+        [
+            torch.einsum("mgh,mf->ghf", amp[0], torch.cos(md)),
+            torch.einsum("mgh,mf->ghf", amp[1], torch.cos(md)),
+            torch.einsum("mgh,mf->ghf", amp[2], torch.sin(md)),
+        ]
+    )
+    w0 = (j[0] / (area[:, None, None] * area[None, :, None])).clamp_min(1e-300)
+    values = torch.stack([torch.log(w0), j[1] / j[0].clamp_min(1e-300), j[2] / j[0].clamp_min(1e-300)])
+    return BodyTable(values=values, warp=warp, n_modes=n_modes)
+
+
+def azimuth_frame(normal: Tensor, view: Tensor, light: Tensor, e_x: Tensor) -> tuple[Tensor, Tensor]:
+    """Tangent frame (x_ref, y_ref = N × x_ref) with x_ref toward V's azimuth about N.
+
+    When V ∥ N the azimuth of L is used instead, and when both are ∥ N any tangent (from e_x):
+    the tabulated quantities do not depend on the choice there. Shapes (..., 3).
+    """
+    eps2 = 1e-12 if normal.dtype == torch.float64 else 1e-8
+    v_t = view - dot(normal, view).unsqueeze(-1) * normal
+    l_t = light - dot(normal, light).unsqueeze(-1) * normal
+    f_t = e_x - dot(normal, e_x).unsqueeze(-1) * normal
+    use_v = (dot(v_t, v_t) > eps2).unsqueeze(-1)
+    use_l = (dot(l_t, l_t) > eps2).unsqueeze(-1)
+    x_ref = safe_normalize(torch.where(use_v, v_t, torch.where(use_l, l_t, f_t)))
+    return x_ref, torch.linalg.cross(normal, x_ref, dim=-1)
+
+
+def body_stokes_fast(
+    table: BodyTable,
+    normal: Tensor,
+    light: Tensor,
+    view: Tensor,
+    *,
+    k_b: Tensor | float,
+    frame: tuple[Tensor, Tensor] | None = None,
+) -> Tensor:
+    """Body-reflection Stokes vector (spec §7) from a :class:`BodyTable`.
+
+    Args:
+        table: built by :func:`build_body_table` for the material.
+        normal, light, view: (..., 3) unit vectors in the camera frame (broadcastable).
+        k_b: body albedo, float or tensor broadcastable to (...) (e.g. per pixel).
+        frame: the pixel Stokes frame (e_x, e_y); computed from ``view`` when omitted.
+
+    Returns:
+        (..., 3) Stokes (s0, s1, s2) for unit irradiance; zero unless N·L > 0 and N·V > 0.
+    """
+    normal, light, view = torch.broadcast_tensors(normal, light, view)
+    dt = normal.dtype
+    e_x, e_y = stokes_frame(view) if frame is None else frame
+    cos_l = dot(normal, light)
+    cos_v = dot(normal, view)
+    front = (cos_l > 0) & (cos_v > 0)
+    theta_v = angle_between(normal, view).clamp(max=HALF_PI)
+    theta_l = angle_between(normal, light).clamp(max=HALF_PI)
+    x_ref, y_ref = azimuth_frame(normal, view, light, e_x)
+    dphi = safe_atan2(dot(light, y_ref), dot(light, x_ref))
+
+    shape = normal.shape[:-1]
+    grid = torch.stack(
+        [dphi.abs() * (2.0 / math.pi) - 1.0, table.warp.to_grid(theta_l), table.warp.to_grid(theta_v)], dim=-1
+    ).reshape(1, -1, 1, 1, 3)
+    w = F.grid_sample(table.values.to(dt).unsqueeze(0), grid, mode="bilinear", padding_mode="border", align_corners=True)
+    w = w.reshape(3, *shape)
+    w0 = torch.exp(w[0])
+    wq, wu = w0 * w[1], w0 * w[2] * torch.where(dphi < 0, -1.0, 1.0).to(dt)
+
+    # local polarisation frame e'_x = sin θ_V N − cos θ_V x_ref (= normalise(N − (N·V)V))
+    e_xl = torch.sin(theta_v).unsqueeze(-1) * normal - torch.cos(theta_v).unsqueeze(-1) * x_ref
+    cos2chi, sin2chi = double_angle(e_xl, e_x, e_y)
+    s1, s2 = rotate_linear_stokes(wq, wu, cos2chi, sin2chi)
+    kb = torch.as_tensor(k_b, dtype=dt, device=normal.device)
+    out = ((kb / math.pi) * cos_l.clamp_min(0.0)).unsqueeze(-1) * torch.stack([w0, s1, s2], dim=-1)
+    return torch.where(front.unsqueeze(-1), out, torch.zeros_like(out))

@@ -1,0 +1,82 @@
+"""NaN-free vector geometry for the forward model (spec §1 frames, §7 numerics).
+
+All functions take batch-first tensors whose last dimension is 3 (camera frame, OpenCV: x right,
+y down, z forward) and never produce NaN/Inf values or gradients, including for zero vectors and
+parallel or anti-parallel pairs: norms are clamped before the square root, angles are taken as
+``atan2(|a × b|, a · b)`` (spec §7, "Numerics") rather than ``arccos`` of a clamped dot product.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+
+def tiny(dtype: torch.dtype) -> float:
+    """A positive floor far below any physical value but safe to square in ``dtype``."""
+    return 1e-30 if dtype == torch.float64 else 1e-18
+
+
+def dot(a: Tensor, b: Tensor) -> Tensor:
+    """Dot product over the last dimension: (..., 3), (..., 3) -> (...)."""
+    return (a * b).sum(-1)
+
+
+def safe_norm(x: Tensor) -> Tensor:
+    """Euclidean norm over the last dimension with a finite gradient at 0: (..., 3) -> (...)."""
+    eps = tiny(x.dtype)
+    return torch.sqrt((x * x).sum(-1).clamp_min(eps * eps))
+
+
+def safe_normalize(x: Tensor) -> Tensor:
+    """``x / |x|`` over the last dimension; a zero vector stays (numerically) zero: (..., 3)."""
+    return x / safe_norm(x).unsqueeze(-1)
+
+
+def angle_between(a: Tensor, b: Tensor) -> Tensor:
+    """Angle in [0, π] between ``a`` and ``b`` (any lengths) as atan2(|a×b|, a·b): (...)."""
+    a, b = torch.broadcast_tensors(a, b)
+    return torch.atan2(safe_norm(torch.linalg.cross(a, b, dim=-1)), dot(a, b))
+
+
+def safe_atan2(y: Tensor, x: Tensor) -> Tensor:
+    """``atan2(y, x)`` whose gradient is finite (zero) at the origin."""
+    eps = tiny(y.dtype)
+    at_origin = (x * x + y * y) <= eps * eps
+    return torch.atan2(torch.where(at_origin, torch.zeros_like(y), y), torch.where(at_origin, torch.ones_like(x), x))
+
+
+def stokes_frame(view: Tensor) -> tuple[Tensor, Tensor]:
+    """The pixel's Stokes frame of spec §1.
+
+    Args:
+        view: (..., 3) unit vectors from the surface point to the camera (V).
+
+    Returns:
+        ``(e_x, e_y)``, each (..., 3): with the ray d = −V, e_x = normalise(x̂ − (x̂·d) d) and
+        e_y = d × e_x. Orthographic (V = (0, 0, −1)): e_x = x̂, e_y = ŷ (image down).
+    """
+    d = -view
+    x_hat = torch.zeros_like(d)
+    x_hat[..., 0] = 1.0
+    e_x = safe_normalize(x_hat - dot(x_hat, d).unsqueeze(-1) * d)
+    e_y = torch.linalg.cross(d, e_x, dim=-1)
+    return e_x, e_y
+
+
+def double_angle(vec: Tensor, e_x: Tensor, e_y: Tensor) -> tuple[Tensor, Tensor]:
+    """cos 2ψ and sin 2ψ of ψ = atan2(vec·e_y, vec·e_x), the angle of ``vec`` projected into a frame.
+
+    Computed algebraically ((a²−b²)/(a²+b²), 2ab/(a²+b²)); both are 0 when the projection
+    vanishes (then the Fresnel factor they multiply vanishes too). Shapes (..., 3) -> (...), (...).
+    """
+    a = dot(vec, e_x)
+    b = dot(vec, e_y)
+    r2 = (a * a + b * b).clamp_min(tiny(a.dtype))
+    return (a * a - b * b) / r2, 2.0 * a * b / r2
+
+
+def rotate_linear_stokes(q: Tensor, u: Tensor, cos2chi: Tensor, sin2chi: Tensor) -> tuple[Tensor, Tensor]:
+    """Express (s1, s2) given in a frame rotated by χ (from the target frame's e_x toward e_y)
+    in the target frame: a polarisation angle ψ' in the source frame is ψ' + χ in the target."""
+    return q * cos2chi - u * sin2chi, q * sin2chi + u * cos2chi

@@ -1,0 +1,163 @@
+"""The ``polarshape`` command line.
+
+Sub-commands (one ``_cmd_<name>(args) -> int`` each, registered in :func:`build_parser`):
+
+* ``simulate SCENE.yaml --out CAPTURE_DIR [--overwrite]`` — render a capture folder
+  (capture-format.md) with the simulated camera, ground truth included.
+* ``demo --out DIR [--overwrite]`` — the forward-model demo (a sphere under one light).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+logger = logging.getLogger(__name__)
+
+
+def _cmd_simulate(args: argparse.Namespace) -> int:
+    from polarshape.acquisition.camera import PIXEL_FORMATS, CameraError
+    from polarshape.acquisition.simulated import SimulatedCamera
+    from polarshape.io.atomic import OutputExistsError
+    from polarshape.io.capture import CaptureError
+    from polarshape.scene.config import load_scene_config
+
+    out = Path(args.out)
+    if out.exists() and not args.overwrite:
+        print(f"error: {out} already exists; refusing to overwrite it (pass --overwrite or another --out)", file=sys.stderr)
+        return 1
+    try:
+        config = load_scene_config(args.scene)
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    if args.pixel_format is not None and args.pixel_format not in PIXEL_FORMATS:
+        print(f"error: --pixel-format {args.pixel_format!r} is not one of {sorted(PIXEL_FORMATS)}", file=sys.stderr)
+        return 2
+    camera = SimulatedCamera(config, device=args.device, seed=args.seed)
+    try:
+        with camera:
+            camera.configure(exposure_us=args.exposure_us, gain_db=args.gain_db, pixel_format=args.pixel_format)
+            capture = camera.render_capture(out, overwrite=args.overwrite, progress=not args.quiet)
+    except OutputExistsError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    except (CameraError, CaptureError, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    mask = capture.mask
+    logger.info(
+        "wrote %s: %d frames of %dx%d, %d-bit, %d object super-pixels",
+        out, capture.num_lights, capture.frames.shape[2], capture.frames.shape[1], capture.bit_depth,
+        int(mask.sum()) if mask is not None else 0,
+    )
+    if not args.quiet:
+        print(f"wrote {out} ({capture.num_lights} frames)")
+    return 0
+
+
+def _cmd_demo(args: argparse.Namespace) -> int:
+    from polarshape.demo import run_demo
+    from polarshape.io.atomic import OutputExistsError
+
+    try:
+        summary = run_demo(args.out, size=args.size, overwrite=args.overwrite)
+    except OutputExistsError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    print(
+        f"wrote {summary['out']}: intensity.png, dolp.png, aolp.png, mosaic.png, stokes.npy "
+        f"({summary['size']}x{summary['size']} sphere, max DoLP {summary['max_dolp']:.3f}, {summary['render_seconds']:.2f} s)"
+    )
+    return 0
+
+
+def _cmd_inspect(args: argparse.Namespace) -> int:
+    from polarshape.imaging.mosaic import MosaicLayout
+    from polarshape.inspect_frame import frame_stats
+
+    labels = args.layout or [90, 45, 135, 0]
+    layout = MosaicLayout.from_maker([labels[:2], labels[2:]], args.angles)
+    try:
+        st = frame_stats(args.frame, bit_depth=args.bit_depth, black_level=args.black_level, layout=layout, roi=args.roi)
+    except (ValueError, OSError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    print(
+        f"{args.frame}: mean s0 {st.mean_s0:.4f} of full scale, DoLP {st.mean_dolp:.4f}, AoLP {st.aolp_deg:+.2f} deg "
+        f"(from image x toward y), {100 * st.saturated_fraction:.2f} % saturated, {st.n_superpixels} super-pixels"
+    )
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser with every sub-command."""
+    parser = argparse.ArgumentParser(prog="polarshape", description="Shape and reflectance from polarisation images.")
+    parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv for debug)")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    sim = sub.add_parser(
+        "simulate",
+        help="render a capture folder of a scene file with the simulated polarisation camera",
+        description="Render one raw polarisation mosaic per light of SCENE (see configs/scenes/*.yaml) into a "
+        "capture folder, with ground_truth/normals.npy, depth.npy and mask.png.",
+    )
+    sim.add_argument("scene", help="scene YAML file")
+    sim.add_argument("--out", required=True, help="capture folder to create (must not exist unless --overwrite)")
+    sim.add_argument("--overwrite", action="store_true", help="replace an existing --out folder")
+    sim.add_argument("--seed", type=int, default=None, help="noise seed (default: sensor.seed of the scene)")
+    sim.add_argument("--exposure-us", type=float, default=None, help="exposure time, µs (default: the scene's)")
+    sim.add_argument("--gain-db", type=float, default=None, help="analogue gain, dB (default: the scene's)")
+    sim.add_argument("--pixel-format", default=None, help="e.g. PolarizeMono8, PolarizeMono12, PolarizeMono16")
+    sim.add_argument("--device", default="cpu", help="torch device for rendering (cpu, cuda, ...)")
+    sim.add_argument("-q", "--quiet", action="store_true", help="no progress bar or summary")
+    sim.set_defaults(handler=_cmd_simulate)
+
+    demo = sub.add_parser(
+        "demo",
+        help="render a sphere with the FMBRDF forward model (intensity, DoLP, AoLP, raw mosaic)",
+        description="Render an orthographic sphere under one light with the Fresnel Microfacet BRDF and write "
+        "intensity.png, dolp.png, aolp.png, mosaic.png (raw IMX250MZR mosaic), stokes.npy and demo.json.",
+    )
+    demo.add_argument("--out", required=True, help="folder to create (must not exist unless --overwrite)")
+    demo.add_argument("--size", type=int, default=256, help="image size in pixels (default 256)")
+    demo.add_argument("--overwrite", action="store_true", help="replace an existing --out folder")
+    demo.set_defaults(handler=_cmd_demo)
+
+    insp = sub.add_parser(
+        "inspect",
+        help="mean intensity, DoLP and AoLP of a raw mosaic (e.g. to check the polariser angle convention)",
+        description="Demosaic FRAME (super-pixel) and print the DoLP and AoLP of its mean Stokes vector, in our "
+        "convention (AoLP from image x toward image y, i.e. clockwise on screen).",
+    )
+    insp.add_argument("frame", help="raw mosaic image (PNG/TIFF, sensor counts)")
+    insp.add_argument("--bit-depth", type=int, default=12, help="significant bits (8, 10, 12, 16; default 12)")
+    insp.add_argument("--black-level", type=float, default=0.0, help="black level, counts")
+    insp.add_argument("--roi", type=int, nargs=4, metavar=("X", "Y", "W", "H"), help="region in mosaic pixels")
+    insp.add_argument("--layout", type=int, nargs=4, metavar=("TL", "TR", "BL", "BR"),
+                      help="maker's polariser labels of the 2x2 block (default 90 45 135 0, the IMX250MZR)")
+    insp.add_argument("--angles", default="counterclockwise_on_screen",
+                      choices=["counterclockwise_on_screen", "clockwise_on_screen"], help="direction of the maker's labels")
+    insp.set_defaults(handler=_cmd_inspect)
+
+    from polarshape.cli_acquisition import add_parsers as add_acquisition_parsers
+
+    add_acquisition_parsers(sub)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the command line; returns the process exit status (0 = success, 1 = refused to
+    overwrite, 2 = invalid input)."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    level = logging.WARNING - 10 * min(args.verbose, 2)
+    logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
+    return int(args.handler(args))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,193 @@
+"""Sensor pixel formats: counts <-> floats, saturation and dark masks, super-pixel mask reduction.
+
+Raw counts are low-bit aligned integers in [0, 2**bit_depth - 1] (capture-format.md), stored in
+``uint8`` (8-bit) or ``uint16`` (10, 12, 16-bit). Floats are fractions of full scale after black
+level subtraction: ``(counts - black_level) / (2**bit_depth - 1 - black_level)``.
+"""
+
+from __future__ import annotations
+
+from typing import Literal, TypeVar
+
+import numpy as np
+import torch
+from torch import Tensor
+
+__all__ = [
+    "BIT_DEPTHS",
+    "check_bit_depth",
+    "counts_to_float",
+    "dark_mask",
+    "float_to_counts",
+    "max_count",
+    "reduce_mask_to_superpixels",
+    "saturation_mask",
+]
+
+#: Bit depths polarshape understands.
+BIT_DEPTHS: tuple[int, ...] = (8, 10, 12, 16)
+
+ArrayOrTensor = TypeVar("ArrayOrTensor", np.ndarray, Tensor)
+
+
+def check_bit_depth(bit_depth: object) -> int:
+    """Return ``bit_depth`` as an int if it is one of 8, 10, 12, 16; else raise ValueError naming the fix."""
+    if isinstance(bit_depth, bool) or not isinstance(bit_depth, (int, np.integer)) or int(bit_depth) not in BIT_DEPTHS:
+        raise ValueError(
+            f"bit_depth must be one of {BIT_DEPTHS} (significant bits per pixel of the sensor's pixel "
+            f"format, e.g. 12 for PolarizeMono12p); got {bit_depth!r}"
+        )
+    return int(bit_depth)
+
+
+def max_count(bit_depth: int) -> int:
+    """Largest count of a ``bit_depth``-bit pixel: ``2**bit_depth - 1``."""
+    return (1 << check_bit_depth(bit_depth)) - 1
+
+
+def _check_black_level(black_level: float, bit_depth: int) -> float:
+    top = max_count(bit_depth)
+    if not np.isfinite(black_level) or not 0 <= black_level < top:
+        raise ValueError(f"black_level must be in [0, {top}) counts for bit_depth {bit_depth}; got {black_level!r}")
+    return float(black_level)
+
+
+def _counts_as_int64(raw: np.ndarray | Tensor, name: str = "raw") -> Tensor:
+    """Integer counts (any integer dtype, numpy or torch) as an int64 tensor on the input's device."""
+    if isinstance(raw, np.ndarray):
+        if not np.issubdtype(raw.dtype, np.integer):
+            raise TypeError(f"{name} must hold integer sensor counts (uint8/uint16); got dtype {raw.dtype}")
+        return torch.from_numpy(raw.astype(np.int64, copy=False))
+    if isinstance(raw, Tensor):
+        if raw.is_floating_point() or raw.is_complex() or raw.dtype == torch.bool:
+            raise TypeError(f"{name} must hold integer sensor counts (uint8/uint16); got dtype {raw.dtype}")
+        return raw.to(torch.int64)
+    raise TypeError(f"{name} must be a numpy array or torch tensor of sensor counts; got {type(raw).__name__}")
+
+
+def counts_to_float(
+    raw: np.ndarray | Tensor,
+    bit_depth: int,
+    black_level: float = 0,
+    *,
+    dtype: torch.dtype = torch.float32,
+    device: torch.device | str | None = None,
+) -> Tensor:
+    """Sensor counts -> fraction of full scale after black level subtraction.
+
+    Args:
+        raw: (*) integer counts, low-bit aligned, in [0, 2**bit_depth - 1] (numpy or torch).
+        bit_depth: 8, 10, 12 or 16.
+        black_level: counts of a dark pixel, subtracted first; in [0, 2**bit_depth - 1).
+        dtype: float dtype of the result.
+        device: device of the result (default: the input's device; CPU for numpy input).
+
+    Returns:
+        (*) ``(raw - black_level) / (2**bit_depth - 1 - black_level)``: 1 at full scale. Counts
+        below the black level give small negative values (kept, so noise stays unbiased).
+
+    Raises:
+        ValueError: bad bit depth or black level, or a count above ``2**bit_depth - 1`` (the data
+            are not what ``bit_depth`` says, e.g. high-bit aligned).
+    """
+    bit_depth = check_bit_depth(bit_depth)
+    black = _check_black_level(black_level, bit_depth)
+    counts = _counts_as_int64(raw)
+    top = max_count(bit_depth)
+    if counts.numel():
+        lo, hi = int(counts.min()), int(counts.max())
+        if lo < 0 or hi > top:
+            raise ValueError(
+                f"raw counts span [{lo}, {hi}] but a {bit_depth}-bit pixel holds [0, {top}]: check bit_depth "
+                f"(if the data are high-bit aligned in 16 bits, shift right by {16 - bit_depth})"
+            )
+    if not dtype.is_floating_point:
+        raise TypeError(f"dtype must be a floating-point torch dtype; got {dtype}")
+    x = counts.to(device=device if device is not None else counts.device, dtype=torch.float64)
+    return ((x - black) / (top - black)).to(dtype)
+
+
+def float_to_counts(x: np.ndarray | Tensor, bit_depth: int, black_level: float = 0) -> np.ndarray:
+    """Fraction of full scale -> integer counts (inverse of :func:`counts_to_float`), rounded and clipped.
+
+    Args:
+        x: (*) floats, 1 = full scale above the black level (numpy or torch, any device).
+        bit_depth: 8, 10, 12 or 16.
+        black_level: counts added back after scaling.
+
+    Returns:
+        (*) ``uint8`` array for bit_depth 8, else ``uint16``, values in [0, 2**bit_depth - 1].
+        NaN maps to 0.
+    """
+    bit_depth = check_bit_depth(bit_depth)
+    black = _check_black_level(black_level, bit_depth)
+    top = max_count(bit_depth)
+    if isinstance(x, Tensor):
+        x = x.detach().to("cpu", torch.float64).numpy()
+    arr = np.asarray(x, dtype=np.float64)
+    counts = np.rint(np.nan_to_num(arr * (top - black) + black, nan=0.0, posinf=top, neginf=0.0))
+    return np.clip(counts, 0, top).astype(np.uint8 if bit_depth == 8 else np.uint16)
+
+
+def _like_input(mask: Tensor, raw: ArrayOrTensor) -> ArrayOrTensor:
+    return mask.cpu().numpy() if isinstance(raw, np.ndarray) else mask  # type: ignore[return-value]
+
+
+def saturation_mask(raw: ArrayOrTensor, bit_depth: int, margin: int = 0) -> ArrayOrTensor:
+    """Pixels at (or within ``margin`` counts of) the top of the range.
+
+    Args:
+        raw: (*) integer counts (numpy or torch).
+        bit_depth: 8, 10, 12 or 16.
+        margin: counts below ``2**bit_depth - 1`` still treated as saturated (>= 0).
+
+    Returns:
+        (*) bool mask, True where ``raw >= 2**bit_depth - 1 - margin``; numpy in, numpy out.
+        Reduce to super-pixels with :func:`reduce_mask_to_superpixels` (``mode="any"``).
+    """
+    top = max_count(bit_depth)
+    if isinstance(margin, bool) or not isinstance(margin, (int, np.integer)) or not 0 <= margin < top:
+        raise ValueError(f"margin must be an integer number of counts in [0, {top}); got {margin!r}")
+    return _like_input(_counts_as_int64(raw) >= top - int(margin), raw)
+
+
+def dark_mask(raw: ArrayOrTensor, bit_depth: int, black_level: float = 0, threshold: float = 0.02) -> ArrayOrTensor:
+    """Pixels too dark to carry polarisation (signal below ``threshold`` of full scale).
+
+    Args:
+        raw: (*) integer counts (numpy or torch).
+        bit_depth: 8, 10, 12 or 16.
+        black_level: counts of a dark pixel.
+        threshold: fraction of full scale (after black level subtraction), in [0, 1).
+
+    Returns:
+        (*) bool mask, True where ``counts_to_float(raw) < threshold``; numpy in, numpy out.
+    """
+    if not 0 <= threshold < 1:
+        raise ValueError(f"threshold must be a fraction of full scale in [0, 1); got {threshold!r}")
+    x = counts_to_float(raw, bit_depth, black_level, dtype=torch.float64)
+    return _like_input(x < threshold, raw)
+
+
+def reduce_mask_to_superpixels(mask: ArrayOrTensor, mode: Literal["any", "all"] = "any") -> ArrayOrTensor:
+    """Reduce a mosaic-resolution mask to super-pixels.
+
+    Args:
+        mask: (*, 2H, 2W) bool (or 0/non-zero) mask at mosaic resolution, numpy or torch.
+        mode: ``"any"``: a super-pixel is set if any of its four sites is (use for saturation and
+            darkness: one bad site spoils the Stokes vector); ``"all"``: only if all four are (use
+            for object masks).
+
+    Returns:
+        (*, H, W) bool mask, numpy in, numpy out.
+    """
+    if mode not in ("any", "all"):
+        raise ValueError(f"mode must be 'any' or 'all'; got {mode!r}")
+    if mask.ndim < 2 or mask.shape[-1] % 2 or mask.shape[-2] % 2:
+        raise ValueError(f"mask must have a shape of (*, 2H, 2W) with even sizes; got {tuple(mask.shape)}")
+    sites = [mask[..., i::2, j::2] != 0 for i in (0, 1) for j in (0, 1)]
+    if isinstance(mask, np.ndarray):
+        stacked = np.stack(sites, axis=0)
+        return np.asarray(stacked.any(axis=0) if mode == "any" else stacked.all(axis=0))
+    stacked_t = torch.stack(sites, dim=0)
+    return stacked_t.any(dim=0) if mode == "any" else stacked_t.all(dim=0)

@@ -1,0 +1,157 @@
+"""Linear Stokes vectors from polariser intensities and back, DoLP and AoLP.
+
+Convention (spec fmbrdf.md §1): angles are measured in the image plane from the image x axis
+(right) toward the image y axis (down), in radians. A polariser at angle θ transmits
+``I_θ = ½ (s0 + s1 cos 2θ + s2 sin 2θ)``; the AoLP is ``φ = ½ atan2(s2, s1)`` in (−π/2, π/2].
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+__all__ = ["aolp", "dolp", "intensities_from_stokes", "polariser_matrix", "stokes_from_intensities"]
+
+
+def _check_float_tensor(x: object, name: str) -> Tensor:
+    if not isinstance(x, Tensor):
+        raise TypeError(f"{name} must be a torch.Tensor; got {type(x).__name__} (convert with torch.as_tensor)")
+    if not x.is_floating_point():
+        raise TypeError(f"{name} must be a floating-point tensor; got dtype {x.dtype} (convert with .float())")
+    return x
+
+
+def _check_stokes(stokes: object, name: str = "stokes") -> Tensor:
+    stokes = _check_float_tensor(stokes, name)
+    if stokes.ndim < 3 or stokes.shape[-3] != 3:
+        raise ValueError(f"{name} must have a shape of (*, 3, H, W) (s0, s1, s2); got {tuple(stokes.shape)}")
+    return stokes
+
+
+def polariser_matrix(angles_rad: Tensor) -> Tensor:
+    """Rows ``½ [1, cos 2θ, sin 2θ]`` mapping a linear Stokes vector to polariser intensities.
+
+    Args:
+        angles_rad: (K,) polariser angles in radians (our convention, from x toward y-down).
+
+    Returns:
+        (K, 3) matrix ``A`` with ``I = A @ s`` (same dtype and device as ``angles_rad``).
+    """
+    angles_rad = _check_float_tensor(angles_rad, "angles_rad")
+    if angles_rad.ndim != 1 or angles_rad.numel() == 0:
+        raise ValueError(f"angles_rad must have a shape of (K,) with K >= 1; got {tuple(angles_rad.shape)}")
+    two = 2.0 * angles_rad
+    return 0.5 * torch.stack([torch.ones_like(two), torch.cos(two), torch.sin(two)], dim=-1)
+
+
+def stokes_from_intensities(intensities: Tensor, angles_rad: Tensor) -> Tensor:
+    """Least-squares linear Stokes vector from images behind polarisers at known angles.
+
+    Fits ``I_θ = ½ (s0 + s1 cos 2θ + s2 sin 2θ)`` (spec §1) per pixel. For the angles
+    0, π/4, π/2, 3π/4 this is the exact inverse ``s0 = ½ ΣI, s1 = I0 − I90, s2 = I45 − I135``.
+
+    Args:
+        intensities: (*, K, H, W) float intensities, K >= 3, any float dtype and device.
+        angles_rad: (K,) polariser angles in radians (from image x toward image y, down); at least
+            three of them distinct modulo π.
+
+    Returns:
+        (*, 3, H, W) Stokes vectors (s0, s1, s2), same dtype and device as ``intensities``.
+
+    Example:
+        >>> ang = torch.tensor([0.0, 0.25, 0.5, 0.75]) * torch.pi
+        >>> stokes_from_intensities(torch.ones(1, 4, 2, 2), ang)[0, :, 0, 0]
+        tensor([2., 0., 0.])
+    """
+    intensities = _check_float_tensor(intensities, "intensities")
+    angles_rad = _check_float_tensor(angles_rad, "angles_rad")
+    if intensities.ndim < 3:
+        raise ValueError(f"intensities must have a shape of (*, K, H, W); got {tuple(intensities.shape)}")
+    k = intensities.shape[-3]
+    if angles_rad.ndim != 1 or angles_rad.numel() != k:
+        raise ValueError(
+            f"angles_rad must have a shape of (K,) = ({k},) to match intensities (*, K, H, W) = "
+            f"{tuple(intensities.shape)}; got {tuple(angles_rad.shape)}"
+        )
+    # The pseudo-inverse is computed once in float64 so the 0/45/90/135 case is exact to rounding.
+    a = polariser_matrix(angles_rad.detach().to(torch.float64))  # (K, 3)
+    sv = torch.linalg.svdvals(a)
+    if k < 3 or float(sv[-1]) < 1e-6 * float(sv[0]):
+        angles_deg = [round(math.degrees(float(t)), 3) for t in angles_rad.detach().cpu()]
+        raise ValueError(
+            f"angles_rad {angles_deg} (degrees) cannot determine (s0, s1, s2): give at least three "
+            "polariser angles that are distinct modulo 180°"
+        )
+    pinv = torch.linalg.pinv(a).to(device=intensities.device, dtype=intensities.dtype)  # (3, K)
+    return torch.einsum("ck,...khw->...chw", pinv, intensities)
+
+
+def intensities_from_stokes(stokes: Tensor, angles_rad: Tensor) -> Tensor:
+    """Images behind ideal linear polarisers at the given angles (Malus, spec §1).
+
+    Args:
+        stokes: (*, 3, H, W) linear Stokes vectors.
+        angles_rad: (K,) polariser angles in radians (from image x toward image y, down).
+
+    Returns:
+        (*, K, H, W) intensities ``½ (s0 + s1 cos 2θ + s2 sin 2θ)``, same dtype/device as ``stokes``.
+    """
+    stokes = _check_stokes(stokes)
+    a = polariser_matrix(_check_float_tensor(angles_rad, "angles_rad")).to(device=stokes.device, dtype=stokes.dtype)
+    return torch.einsum("kc,...chw->...khw", a, stokes)
+
+
+def _upcast(x: Tensor) -> Tensor:
+    """Half-precision input is evaluated in float32 (ratios and their gradients overflow float16)."""
+    return x.float() if x.dtype in (torch.float16, torch.bfloat16) else x
+
+
+def _safe_norm2(x: Tensor, y: Tensor) -> Tensor:
+    """sqrt(x² + y²) with a zero (not NaN) gradient at the origin."""
+    r2 = x * x + y * y
+    positive = r2 > 0
+    return torch.where(positive, torch.sqrt(torch.where(positive, r2, torch.ones_like(r2))), torch.zeros_like(r2))
+
+
+def dolp(stokes: Tensor, eps: float = 1e-8) -> Tensor:
+    """Degree of linear polarisation ``ρ = √(s1² + s2²) / s0`` (spec §1).
+
+    Args:
+        stokes: (*, 3, H, W) linear Stokes vectors.
+        eps: lower bound on the denominator, so ``s0 <= 0`` gives a finite value (0 where also
+            s1 = s2 = 0). The bound is raised to the dtype's smallest normal number if smaller.
+
+    Returns:
+        (*, H, W) DoLP. Not clipped: with noise it can exceed 1 (clip with ``.clamp(0, 1)``).
+        Finite everywhere for finite input, with finite gradients.
+    """
+    stokes = _check_stokes(stokes)
+    s0, s1, s2 = _upcast(stokes).unbind(dim=-3)
+    floor = max(float(eps), float(torch.finfo(s0.dtype).tiny))
+    rho = _safe_norm2(s1, s2) / s0.clamp_min(floor)
+    return rho.clamp_max(torch.finfo(stokes.dtype).max).to(stokes.dtype)
+
+
+def aolp(stokes: Tensor) -> Tensor:
+    """Angle of linear polarisation ``φ = ½ atan2(s2, s1)`` in (−π/2, π/2] radians (spec §1).
+
+    Measured from the image x axis toward the image y axis (down). Where s1 = s2 = 0 the angle is
+    undefined and 0 is returned (with a zero gradient).
+
+    Args:
+        stokes: (*, 3, H, W) linear Stokes vectors.
+
+    Returns:
+        (*, H, W) AoLP in radians.
+    """
+    stokes = _check_stokes(stokes)
+    _, s1, s2 = _upcast(stokes).unbind(dim=-3)
+    defined = (s1 != 0) | (s2 != 0)
+    # atan2(0, 0) has a NaN gradient; evaluate a harmless point there instead.
+    phi = 0.5 * torch.atan2(
+        torch.where(defined, s2, torch.zeros_like(s2)), torch.where(defined, s1, torch.ones_like(s1))
+    )
+    # atan2(-0.0, x < 0) = -π would give -π/2, outside (−π/2, π/2].
+    return torch.where(phi <= -math.pi / 2, phi + math.pi, phi).to(stokes.dtype)

@@ -1,0 +1,536 @@
+"""Capture folders (spec capture-format.md): what a camera recorded of one object under K lights.
+
+::
+
+    my_capture/
+      capture.yaml        format, camera, lights (validated by :class:`CaptureSpec`)
+      frames/000.png …    one raw mosaic per light, 8/16-bit PNG or TIFF, low-bit aligned counts
+      mask.png            optional object mask (non-zero = object), mosaic or super-pixel size
+      ground_truth/       optional: normals.npy, depth.npy, any other *.npy / *.json
+
+Frames live in the camera frame of spec fmbrdf.md §1 (OpenCV: x right, y down, z into the scene).
+Every problem found on load is a :class:`CaptureError` naming the file, the field and the fix.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path, PurePosixPath
+from typing import Any, Literal
+
+import numpy as np
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from polarshape.imaging.mosaic import CHANNEL_ANGLES_DEG, MosaicLayout
+from polarshape.imaging.pixels import BIT_DEPTHS, max_count, reduce_mask_to_superpixels
+from polarshape.io.atomic import atomic_directory, atomic_write_text
+from polarshape.io.images import IMAGE_SUFFIXES, ImageError, read_image, write_image
+
+logger = logging.getLogger(__name__)
+
+__all__ = [
+    "CAPTURE_FORMAT",
+    "CameraSpec",
+    "Capture",
+    "CaptureError",
+    "CaptureSpec",
+    "IntrinsicsSpec",
+    "LightSpec",
+    "MosaicSpec",
+    "load_capture",
+    "write_capture",
+]
+
+#: Version string of the capture format this module reads and writes.
+CAPTURE_FORMAT = "polarshape-capture/1"
+CAPTURE_YAML = "capture.yaml"
+MASK_FILE = "mask.png"
+GROUND_TRUTH_DIR = "ground_truth"
+UNIT_TOLERANCE = 1e-3
+
+
+class CaptureError(ValueError):
+    """A capture folder or :class:`Capture` is invalid; the message names the file, the field and the fix."""
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class IntrinsicsSpec(_Strict):
+    """Pinhole intrinsics in raw-mosaic pixels (perspective cameras)."""
+
+    fx: float = Field(gt=0, allow_inf_nan=False, description="focal length along x, pixels")
+    fy: float = Field(gt=0, allow_inf_nan=False, description="focal length along y, pixels")
+    cx: float = Field(allow_inf_nan=False, description="principal point x (column), pixels")
+    cy: float = Field(allow_inf_nan=False, description="principal point y (row), pixels")
+
+
+class MosaicSpec(_Strict):
+    """The polariser mosaic as the maker labels it (converted to our convention by :meth:`layout`)."""
+
+    layout: tuple[tuple[float, float], tuple[float, float]] = ((90.0, 45.0), (135.0, 0.0))
+    angles: Literal["counterclockwise_on_screen", "clockwise_on_screen"] = "counterclockwise_on_screen"
+
+    @field_validator("layout")
+    @classmethod
+    def _permutation(cls, v: tuple[tuple[float, float], tuple[float, float]]) -> tuple[tuple[float, float], ...]:
+        flat = sorted(a % 180.0 for row in v for a in row)
+        if any(not math.isclose(a, b, abs_tol=1e-6) for a, b in zip(flat, CHANNEL_ANGLES_DEG)):
+            raise ValueError(
+                f"must hold the polariser angles 0, 45, 90, 135 (degrees) once each, top row then bottom row, "
+                f"e.g. [[90, 45], [135, 0]]; got {[list(r) for r in v]}"
+            )
+        return v
+
+    def to_layout(self) -> MosaicLayout:
+        """The layout in our convention (y down, angle from x toward y)."""
+        return MosaicLayout.from_maker(self.layout, self.angles)
+
+
+class CameraSpec(_Strict):
+    """Camera model, projection and pixel format."""
+
+    model: str = "unknown"
+    projection: Literal["orthographic", "perspective"]
+    intrinsics: IntrinsicsSpec | None = None
+    distortion: tuple[float, ...] | None = None
+    bit_depth: int
+    black_level: float = Field(default=0.0, ge=0, allow_inf_nan=False)
+    mosaic: MosaicSpec = MosaicSpec()
+
+    @field_validator("bit_depth")
+    @classmethod
+    def _bit_depth(cls, v: int) -> int:
+        if v not in BIT_DEPTHS:
+            raise ValueError(f"must be one of {BIT_DEPTHS} (significant bits of the sensor counts); got {v}")
+        return v
+
+    @field_validator("distortion")
+    @classmethod
+    def _distortion(cls, v: tuple[float, ...] | None) -> tuple[float, ...] | None:
+        if v is not None and len(v) not in (4, 5, 8, 12, 14):
+            raise ValueError(f"must have 4, 5, 8, 12 or 14 OpenCV coefficients (k1 k2 p1 p2 [k3 ...]); got {len(v)}")
+        if v is not None and not all(math.isfinite(c) for c in v):
+            raise ValueError("coefficients must be finite numbers")
+        return v
+
+    @model_validator(mode="after")
+    def _consistent(self) -> CameraSpec:
+        if self.projection == "perspective" and self.intrinsics is None:
+            raise ValueError(
+                "camera.intrinsics {fx, fy, cx, cy} (raw-mosaic pixels) is required when projection is perspective"
+            )
+        if self.black_level >= max_count(self.bit_depth):
+            raise ValueError(
+                f"camera.black_level {self.black_level} must be below the full scale {max_count(self.bit_depth)} "
+                f"of bit_depth {self.bit_depth}"
+            )
+        return self
+
+
+class LightSpec(_Strict):
+    """One light and the frame recorded under it (exactly one of ``direction`` / ``position``)."""
+
+    direction: tuple[float, float, float] | None = None
+    position: tuple[float, float, float] | None = None
+    intensity: float = Field(default=1.0, gt=0, allow_inf_nan=False)
+    frame: str
+
+    @field_validator("direction")
+    @classmethod
+    def _direction(cls, v: tuple[float, float, float] | None) -> tuple[float, float, float] | None:
+        if v is None:
+            return v
+        if not all(math.isfinite(c) for c in v):
+            raise ValueError(f"must be finite; got {list(v)}")
+        norm = math.sqrt(sum(c * c for c in v))
+        if abs(norm - 1.0) > UNIT_TOLERANCE:
+            raise ValueError(
+                f"must be a unit vector (|d| = {norm:.6f}, tolerance {UNIT_TOLERANCE}): divide it by its norm"
+            )
+        if not v[2] < 0:
+            raise ValueError(
+                f"z = {v[2]:.6g} must be < 0: the direction points from the object TO the light, in the camera frame "
+                "(x right, y down, +z into the scene), so a light on the camera side has z < 0; z >= 0 puts it "
+                "behind the object. Flip the sign if your convention has +z toward the camera"
+            )
+        return v
+
+    @field_validator("position")
+    @classmethod
+    def _position(cls, v: tuple[float, float, float] | None) -> tuple[float, float, float] | None:
+        if v is not None and not all(math.isfinite(c) for c in v):
+            raise ValueError(f"must be finite (metres, camera frame); got {list(v)}")
+        return v
+
+    @field_validator("frame")
+    @classmethod
+    def _frame(cls, v: str) -> str:
+        p = PurePosixPath(v)
+        if not v or p.is_absolute() or ".." in p.parts or "\\" in v:
+            raise ValueError(f"must be a relative path inside the capture folder, e.g. frames/000.png; got {v!r}")
+        if p.suffix.lower() not in IMAGE_SUFFIXES:
+            raise ValueError(f"must be a {'/'.join(IMAGE_SUFFIXES)} file (lossless); got {v!r}")
+        return v
+
+    @model_validator(mode="after")
+    def _one_kind(self) -> LightSpec:
+        if (self.direction is None) == (self.position is None):
+            raise ValueError(
+                "give exactly one of direction (unit vector to a distant light) or position (point light, metres)"
+            )
+        return self
+
+
+class CaptureSpec(_Strict):
+    """The content of ``capture.yaml``."""
+
+    format: Literal["polarshape-capture/1"]
+    camera: CameraSpec
+    lights: tuple[LightSpec, ...] = Field(min_length=1)
+
+    @model_validator(mode="after")
+    def _unique_frames(self) -> CaptureSpec:
+        seen: dict[str, int] = {}
+        for k, light in enumerate(self.lights):
+            key = light.frame.lower()
+            if key in seen:
+                raise ValueError(f"lights[{k}].frame {light.frame!r} is also the frame of lights[{seen[key]}]")
+            seen[key] = k
+        return self
+
+
+def _format_validation_error(source: str, err: ValidationError) -> str:
+    lines = [f"{source}: {err.error_count()} problem(s):"]
+    for e in err.errors():
+        loc = ""
+        for part in e["loc"]:
+            loc += f"[{part}]" if isinstance(part, int) else (f".{part}" if loc else str(part))
+        msg = e["msg"].removeprefix("Value error, ")
+        hint = ""
+        if e["type"] == "extra_forbidden":
+            hint = " (unknown field: remove it or fix its spelling; the capture format is described in the README)"
+        elif e["type"] == "missing":
+            hint = " (required field: add it)"
+        elif e["type"] == "literal_error" and loc == "format":
+            hint = f" (this polarshape reads {CAPTURE_FORMAT!r})"
+        lines.append(f"  - {loc or '(top level)'}: {msg}{hint}; got {e.get('input')!r}"[:600])
+    return "\n".join(lines)
+
+
+def parse_capture_spec(data: Any, source: str = CAPTURE_YAML) -> CaptureSpec:
+    """Validate a parsed ``capture.yaml`` mapping. Raises :class:`CaptureError` naming each bad field."""
+    if not isinstance(data, dict):
+        raise CaptureError(
+            f"{source}: must be a YAML mapping with format, camera and lights; got {type(data).__name__}"
+        )
+    try:
+        return CaptureSpec.model_validate(data)
+    except ValidationError as err:
+        raise CaptureError(_format_validation_error(source, err)) from None
+
+
+@dataclass
+class Capture:
+    """One object recorded under K lights.
+
+    Attributes:
+        spec: the validated ``capture.yaml``.
+        frames: (K, H, W) ``uint16`` raw mosaics in sensor counts (low-bit aligned, also for
+            8-bit data), frame k under ``spec.lights[k]``; H and W even.
+        mask: (H/2, W/2) bool object mask at super-pixel resolution, or None.
+        ground_truth: optional reference data by file stem, e.g. ``"normals"`` -> (H/2, W/2, 3)
+            float camera-frame unit normals; ``*.npy`` files give arrays, ``*.json`` files
+            give the parsed JSON.
+        root: the folder it was loaded from, if any.
+    """
+
+    spec: CaptureSpec
+    frames: np.ndarray
+    mask: np.ndarray | None = None
+    ground_truth: dict[str, Any] = field(default_factory=dict)
+    root: Path | None = None
+
+    @property
+    def layout(self) -> MosaicLayout:
+        """The mosaic layout of the stored frames, our convention."""
+        return self.spec.camera.mosaic.to_layout()
+
+    @property
+    def bit_depth(self) -> int:
+        return self.spec.camera.bit_depth
+
+    @property
+    def num_lights(self) -> int:
+        return len(self.spec.lights)
+
+    def light_intensities(self) -> np.ndarray:
+        """(K,) relative light intensities (float64)."""
+        return np.array([light.intensity for light in self.spec.lights], dtype=np.float64)
+
+    def light_directions(self, points: np.ndarray | None = None) -> np.ndarray:
+        """Unit vectors from the surface to each light, camera frame.
+
+        Args:
+            points: optional (*, 3) surface points in metres, camera frame; required if any light
+                is a point light.
+
+        Returns:
+            (K, 3) for directional lights only and ``points`` None; else (K, *, 3) (directional
+            lights broadcast over the points). float64.
+        """
+        lights = self.spec.lights
+        if points is None:
+            missing = [k for k, light in enumerate(lights) if light.direction is None]
+            if missing:
+                raise CaptureError(
+                    f"lights{missing} are point lights (position): pass the surface points (*, 3) to "
+                    "light_directions(points) to get per-point directions"
+                )
+            return np.array([light.direction for light in lights], dtype=np.float64)
+        pts = np.asarray(points, dtype=np.float64)
+        if pts.ndim < 1 or pts.shape[-1] != 3:
+            raise ValueError(f"points must have a shape of (*, 3) (metres, camera frame); got {pts.shape}")
+        out = np.empty((len(lights), *pts.shape), dtype=np.float64)
+        for k, light in enumerate(lights):
+            if light.direction is not None:
+                out[k] = np.asarray(light.direction, dtype=np.float64)
+            else:
+                d = np.asarray(light.position, dtype=np.float64) - pts
+                out[k] = d / np.maximum(np.linalg.norm(d, axis=-1, keepdims=True), 1e-12)
+        return out
+
+
+# --- validation shared by load and write -------------------------------------------------------
+
+
+def _check_frames(spec: CaptureSpec, frames: np.ndarray, where: str) -> None:
+    k = len(spec.lights)
+    if not isinstance(frames, np.ndarray) or frames.ndim != 3:
+        raise CaptureError(f"{where}: frames must be a (K, H, W) array; got {getattr(frames, 'shape', type(frames))}")
+    if frames.shape[0] != k:
+        raise CaptureError(
+            f"{where}: {frames.shape[0]} frames for {k} lights in capture.yaml; give one frame per light"
+        )
+    h, w = frames.shape[1:]
+    if h % 2 or w % 2 or h == 0 or w == 0:
+        raise CaptureError(
+            f"{where}: frames are {w}×{h} (W×H); a polarisation mosaic needs even width and height (whole 2×2 "
+            "super-pixels): crop one column/row, and if you crop at the top or left, change camera.mosaic.layout"
+        )
+    if frames.dtype not in (np.uint8, np.uint16):
+        raise CaptureError(f"{where}: frames must be uint16 (or uint8) sensor counts; got {frames.dtype}")
+
+
+def _check_counts(image: np.ndarray, bit_depth: int, where: str) -> None:
+    top = max_count(bit_depth)
+    hi = int(image.max()) if image.size else 0
+    if hi > top:
+        shift = 16 - bit_depth
+        raise CaptureError(
+            f"{where}: holds counts up to {hi}, above {top} = 2**{bit_depth} - 1 for camera.bit_depth {bit_depth}: "
+            f"if the counts are high-bit aligned, shift them right by {shift} bits before saving; otherwise fix "
+            "camera.bit_depth"
+        )
+
+
+def _mask_to_superpixels(mask: np.ndarray, frame_hw: tuple[int, int], where: str) -> np.ndarray:
+    h, w = frame_hw
+    if mask.ndim != 2:
+        raise CaptureError(f"{where}: the mask must be a single-channel image; got shape {mask.shape}")
+    if mask.shape == (h, w):
+        return reduce_mask_to_superpixels(mask != 0, mode="all")
+    if mask.shape == (h // 2, w // 2):
+        return mask != 0
+    raise CaptureError(
+        f"{where}: mask is {mask.shape[1]}×{mask.shape[0]} (W×H) but the frames are {w}×{h}: give the mask at "
+        f"mosaic resolution ({w}×{h}) or super-pixel resolution ({w // 2}×{h // 2})"
+    )
+
+
+def _check_capture(capture: Capture) -> None:
+    """Consistency of an in-memory capture before writing (raises CaptureError)."""
+    if not isinstance(capture.spec, CaptureSpec):
+        raise CaptureError(f"Capture.spec must be a CaptureSpec; got {type(capture.spec).__name__}")
+    _check_frames(capture.spec, capture.frames, "Capture.frames")
+    _check_counts(capture.frames, capture.bit_depth, "Capture.frames")
+    h, w = capture.frames.shape[1:]
+    if capture.mask is not None:
+        m = capture.mask
+        if not isinstance(m, np.ndarray) or m.shape != (h // 2, w // 2):
+            raise CaptureError(
+                f"Capture.mask must be a ({h // 2}, {w // 2}) bool array at super-pixel resolution; got "
+                f"{getattr(m, 'shape', type(m).__name__)}"
+            )
+    for name, value in capture.ground_truth.items():
+        if not name or "/" in name or "\\" in name or name.startswith("."):
+            raise CaptureError(f"Capture.ground_truth key {name!r} must be a plain file stem, e.g. 'normals'")
+        if isinstance(value, np.ndarray) and value.dtype == object:
+            raise CaptureError(f"Capture.ground_truth[{name!r}] is an object array; store numeric arrays only")
+
+
+# --- load --------------------------------------------------------------------------------------
+
+
+def _read_yaml(path: Path) -> Any:
+    if not path.is_file():
+        raise CaptureError(
+            f"{path}: not found; a capture folder must hold capture.yaml (format, camera, lights) — see the capture "
+            "format in the README"
+        )
+    try:
+        return yaml.safe_load(path.read_text(encoding="utf-8"))
+    except yaml.YAMLError as err:
+        raise CaptureError(f"{path}: not valid YAML: {err}") from None
+    except UnicodeDecodeError as err:
+        raise CaptureError(f"{path}: not UTF-8 text: {err}") from None
+
+
+def _read_frame(root: Path, k: int, light: LightSpec, bit_depth: int) -> np.ndarray:
+    path = root / light.frame
+    where = f"{path} (lights[{k}].frame in {CAPTURE_YAML})"
+    if not path.is_file():
+        raise CaptureError(f"{where}: file not found; add the frame or fix lights[{k}].frame")
+    try:
+        image = read_image(path)
+    except ImageError as err:
+        raise CaptureError(f"{err} (lights[{k}].frame)") from None
+    if image.dtype == np.uint8 and bit_depth > 8:
+        raise CaptureError(
+            f"{where}: is an 8-bit image but camera.bit_depth is {bit_depth}: 8 bits cannot hold {bit_depth}-bit "
+            "counts (the data were probably scaled down); save the frames as 16-bit PNG/TIFF with low-bit aligned "
+            "counts, or set camera.bit_depth: 8 if the sensor delivered 8 bits"
+        )
+    _check_counts(image, bit_depth, where)
+    return image
+
+
+def _read_ground_truth(folder: Path, frame_hw: tuple[int, int]) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    if not folder.is_dir():
+        return out
+    h, w = frame_hw
+    for path in sorted(folder.iterdir()):
+        suffix = path.suffix.lower()
+        if not path.is_file() or suffix not in (".npy", ".json"):
+            logger.debug("ignoring %s (only *.npy and *.json are ground truth)", path)
+            continue
+        if path.stem in out:
+            raise CaptureError(f"{path}: a ground-truth file with the stem {path.stem!r} already exists; rename one")
+        try:
+            value: Any = np.load(path, allow_pickle=False) if suffix == ".npy" else json.loads(path.read_text("utf-8"))
+        except (ValueError, OSError) as err:
+            raise CaptureError(f"{path}: cannot be read as {suffix[1:].upper()} ({err})") from None
+        if path.stem == "normals" and not (
+            isinstance(value, np.ndarray)
+            and value.ndim == 3
+            and value.shape[2] == 3
+            and value.shape[:2] in ((h // 2, w // 2), (h, w))
+        ):
+            raise CaptureError(
+                f"{path}: normals must be an (H, W, 3) array of camera-frame unit normals at super-pixel "
+                f"({h // 2}, {w // 2}, 3) or mosaic ({h}, {w}, 3) resolution; got {getattr(value, 'shape', type(value))}"
+            )
+        out[path.stem] = value
+    return out
+
+
+def load_capture(path: str | os.PathLike[str]) -> Capture:
+    """Read and validate a capture folder.
+
+    Args:
+        path: the capture folder (or its capture.yaml).
+
+    Returns:
+        The :class:`Capture`; frames as (K, H, W) ``uint16``.
+
+    Raises:
+        CaptureError: missing or invalid capture.yaml (unknown or wrong fields), missing or
+            unreadable frames, frames of different or odd sizes, counts above the bit depth,
+            8-bit frames for a deeper bit depth, a mask of the wrong size, bad ground truth.
+    """
+    root = Path(path)
+    if root.name == CAPTURE_YAML and root.is_file():
+        root = root.parent
+    if not root.is_dir():
+        raise CaptureError(f"{root}: capture folder not found (expected a folder holding {CAPTURE_YAML} and frames/)")
+    yaml_path = root / CAPTURE_YAML
+    spec = parse_capture_spec(_read_yaml(yaml_path), str(yaml_path))
+    bit_depth = spec.camera.bit_depth
+    images = [_read_frame(root, k, light, bit_depth) for k, light in enumerate(spec.lights)]
+    h, w = images[0].shape
+    for k, image in enumerate(images):
+        if image.shape != (h, w):
+            raise CaptureError(
+                f"{root / spec.lights[k].frame} (lights[{k}].frame): is {image.shape[1]}×{image.shape[0]} (W×H) but "
+                f"{spec.lights[0].frame} is {w}×{h}; all frames must have the same size (same camera and ROI)"
+            )
+    frames = np.stack([image.astype(np.uint16, copy=False) for image in images])
+    _check_frames(spec, frames, str(root / spec.lights[0].frame))
+    mask = None
+    mask_path = root / MASK_FILE
+    if mask_path.exists():
+        try:
+            mask_image = read_image(mask_path)
+        except ImageError as err:
+            raise CaptureError(f"{err} (optional object mask; remove it or save it as a grayscale PNG)") from None
+        mask = _mask_to_superpixels(mask_image, (h, w), str(mask_path))
+    ground_truth = _read_ground_truth(root / GROUND_TRUTH_DIR, (h, w))
+    logger.info("loaded capture %s: %d frames of %dx%d, %d-bit", root, len(images), w, h, bit_depth)
+    return Capture(spec=spec, frames=frames, mask=mask, ground_truth=ground_truth, root=root.resolve())
+
+
+# --- write -------------------------------------------------------------------------------------
+
+
+def _spec_to_yaml(spec: CaptureSpec) -> str:
+    data = spec.model_dump(mode="json", exclude_none=True)
+    return yaml.safe_dump(data, sort_keys=False, default_flow_style=None, allow_unicode=True)
+
+
+def write_capture(path: str | os.PathLike[str], capture: Capture, *, overwrite: bool = False) -> Path:
+    """Write a capture folder atomically (nothing appears at ``path`` until it is complete).
+
+    Frames are written as 16-bit images (8-bit when ``bit_depth == 8``) at the paths the lights
+    name; the mask as ``mask.png`` (super-pixel resolution, 0/255); ground-truth arrays as
+    ``ground_truth/<key>.npy`` and other values as ``ground_truth/<key>.json``.
+    ``load_capture(write_capture(p, c))`` reproduces ``c`` exactly.
+
+    Args:
+        path: the folder to create.
+        capture: what to write (validated first).
+        overwrite: replace an existing folder at ``path``.
+
+    Returns:
+        The folder written.
+    """
+    _check_capture(capture)
+    spec = capture.spec
+    eight_bit = spec.camera.bit_depth == 8
+    with atomic_directory(path, overwrite=overwrite) as tmp:
+        for light, frame in zip(spec.lights, capture.frames):
+            write_image(tmp / light.frame, frame.astype(np.uint8 if eight_bit else np.uint16))
+        if capture.mask is not None:
+            write_image(tmp / MASK_FILE, np.where(capture.mask, 255, 0).astype(np.uint8))
+        for name, value in capture.ground_truth.items():
+            target = tmp / GROUND_TRUTH_DIR / name
+            target.parent.mkdir(parents=True, exist_ok=True)
+            if isinstance(value, np.ndarray):
+                np.save(target.with_suffix(".npy"), value, allow_pickle=False)
+            else:
+                try:
+                    text = json.dumps(value, indent=1)
+                except TypeError as err:
+                    raise CaptureError(
+                        f"Capture.ground_truth[{name!r}]: neither an array nor JSON-serialisable ({err})"
+                    ) from None
+                atomic_write_text(target.with_suffix(".json"), text)
+        atomic_write_text(tmp / CAPTURE_YAML, _spec_to_yaml(spec))
+    logger.info("wrote capture %s (%d frames)", path, len(spec.lights))
+    return Path(path)

@@ -1,0 +1,606 @@
+"""Lambertian photometric stereo: plain least squares and a robust variant (shadows, highlights).
+
+Model (spec §10, Lambertian baseline) for pixel p under light k:
+
+    I[k, p] = albedo[p] * E[k, p] * max(0, N[p] · L[k, p])
+
+with ``E`` the relative light intensity (per light, or per pixel for point lights, where it also
+carries the 1/r² fall-off) and ``albedo`` the scaled diffuse reflectance (``k_d / π`` of spec §10,
+times exposure). Frames: camera frame (OpenCV: x right, y down, z forward into the scene), ``L`` the
+unit direction from the surface point to the light, ``V`` the unit direction from the surface point
+to the camera (orthographic default ``V = (0, 0, -1)``); a visible surface has ``N · V > 0``.
+
+Solving: per pixel, ``b = albedo * N`` minimises ``Σ_k w_k (I_k - E_k L_k · b)²`` (weights ``w`` are
+1 for used observations, 0 otherwise). All pixels are solved at once through the 3×3 normal
+equations ``A b = r`` with ``A = Σ w E² L Lᵀ`` (closed-form symmetric inverse, batched);
+pixels whose ``A`` is (nearly) singular get the minimum-norm solution from a batched eigen
+decomposition instead. Then ``albedo = |b|`` (≥ 0) and ``N = b / |b|``.
+
+**Flip rule.** A least-squares ``b`` that points away from the camera (``b · V < 0``; this happens
+at grazing pixels with noise, or with inconsistent data) is mirrored across the plane
+perpendicular to ``V``: ``N ← N − 2 (N · V) V`` (orthographic: ``n_z ← −n_z``). This keeps the
+normal's image-plane azimuth and its angle to the image plane, and makes ``N · V ≥ 0``.
+Pixels with ``b = 0`` (no usable light) get ``N = V`` and ``albedo = 0``.
+
+Example::
+
+    >>> lights = torch.tensor([[0.5, 0.0, -0.866], [0.0, 0.5, -0.866], [-0.5, -0.5, -0.707]])
+    >>> normals, albedo = lambertian_ps(images, lights / lights.norm(dim=-1, keepdim=True))
+"""
+
+from __future__ import annotations
+
+import enum
+import logging
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+logger = logging.getLogger(__name__)
+
+__all__ = [
+    "PSReason",
+    "RobustPSResult",
+    "lambertian_ps",
+    "robust_lambertian_ps",
+]
+
+#: Lights must be unit vectors to this tolerance on |L| (relative).
+_UNIT_TOLERANCE = 1e-3
+
+
+class PSReason(enum.IntEnum):
+    """Per-pixel outcome code of :func:`robust_lambertian_ps` (0 = valid)."""
+
+    OK = 0
+    #: Pixel excluded by the caller's pixel mask.
+    MASKED = 1
+    #: Fewer than 3 usable observations after removing dark, saturated, non-finite and specular ones.
+    TOO_FEW_LIGHTS = 2
+    #: The usable lights are (nearly) coplanar: condition number of the weighted light matrix
+    #: above ``max_condition``.
+    ILL_CONDITIONED = 3
+    #: The least-squares solution pointed away from the camera (b · V < 0): data inconsistent with
+    #: a visible Lambertian surface; the normal was mirrored by the flip rule.
+    BACK_FACING = 4
+    #: After trimming, a used observation still deviates from the fit by more than the outlier
+    #: threshold (a highlight spread over too many lights to isolate, or non-Lambertian data).
+    INCONSISTENT = 5
+
+
+@dataclass(frozen=True)
+class RobustPSResult:
+    """Output of :func:`robust_lambertian_ps`; ``S`` is the spatial shape of the input.
+
+    Attributes:
+        normals: (*S, 3) unit normals, camera frame, facing the camera (flip rule in the module doc).
+        albedo: (*S,) ≥ 0, in the units of ``intensity / light_intensity``.
+        valid: (*S,) bool, ``reason == PSReason.OK``.
+        reason: (*S,) int64 :class:`PSReason` codes.
+        used: (K, *S) bool, the observations the final fit used.
+        n_used: (*S,) int64, number of used observations.
+        condition: (*S,) condition number σ_max/σ_min of the used, intensity-weighted light matrix
+            (``inf`` when fewer than 3 observations).
+    """
+
+    normals: Tensor
+    albedo: Tensor
+    valid: Tensor
+    reason: Tensor
+    used: Tensor
+    n_used: Tensor
+    condition: Tensor
+
+
+# --------------------------------------------------------------------------------------------
+# Input handling
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class _Flat:
+    """Inputs flattened to P pixels."""
+
+    intensity: Tensor  # (K, P)
+    lights: Tensor  # (K, 3) shared, or (K, P, 3) per pixel
+    light_intensity: Tensor  # (K, 1) or (K, P)
+    pixel_mask: Tensor  # (P,) bool
+    obs_mask: Tensor  # (K, P) bool: finite, not masked, E > 0
+    view: Tensor  # (1, 3) or (P, 3)
+    spatial: tuple[int, ...]
+
+
+def _prepare(
+    intensity: Tensor,
+    lights: Tensor,
+    light_intensity: Tensor | None,
+    mask: Tensor | None,
+    view_dirs: Tensor | None,
+) -> _Flat:
+    if not isinstance(intensity, Tensor) or not isinstance(lights, Tensor):
+        raise TypeError("intensity and lights must be torch.Tensor objects")
+    if not intensity.is_floating_point():
+        raise ValueError(f"intensity must be a floating-point tensor; got dtype {intensity.dtype}")
+    if intensity.ndim < 2:
+        raise ValueError(
+            "intensity must have shape (K, P) or (K, H, W) (K lights first); "
+            f"got shape {tuple(intensity.shape)}"
+        )
+    dtype, device = intensity.dtype, intensity.device
+    k = intensity.shape[0]
+    spatial = tuple(intensity.shape[1:])
+    p = math.prod(spatial)
+    if k < 1 or p < 1:
+        raise ValueError(
+            f"intensity must hold at least one light and one pixel; got shape {tuple(intensity.shape)}"
+        )
+
+    lights = lights.to(device=device, dtype=dtype)
+    if lights.shape == (k, 3):
+        flat_lights = lights
+    elif lights.shape == (k, *spatial, 3):
+        flat_lights = lights.reshape(k, p, 3)
+    else:
+        raise ValueError(
+            f"lights must have shape (K, 3) = ({k}, 3) for directional lights or (K, *S, 3) = "
+            f"{(k, *spatial, 3)} for per-pixel (point-light) directions; got {tuple(lights.shape)}"
+        )
+    if not bool(torch.isfinite(flat_lights).all()):
+        raise ValueError("lights contain NaN or Inf; check the light calibration")
+    norms = flat_lights.norm(dim=-1)
+    if bool(((norms - 1.0).abs() > _UNIT_TOLERANCE).any()):
+        raise ValueError(
+            "lights must be unit direction vectors (surface → light); got norms in "
+            f"[{float(norms.min()):.4g}, {float(norms.max()):.4g}]. Normalise them and put any "
+            "intensity or 1/r² fall-off into light_intensity"
+        )
+
+    if light_intensity is None:
+        flat_e = torch.ones(k, 1, dtype=dtype, device=device)
+    else:
+        light_intensity = torch.as_tensor(light_intensity, dtype=dtype, device=device)
+        if light_intensity.shape == (k,):
+            flat_e = light_intensity.reshape(k, 1)
+        elif light_intensity.shape == (k, *spatial):
+            flat_e = light_intensity.reshape(k, p)
+        else:
+            raise ValueError(
+                f"light_intensity must have shape (K,) = ({k},) or (K, *S) = {(k, *spatial)}; "
+                f"got {tuple(light_intensity.shape)}"
+            )
+        if not bool(torch.isfinite(flat_e).all()) or bool((flat_e < 0).any()):
+            raise ValueError("light_intensity must be finite and ≥ 0 (0 disables a light)")
+
+    flat_i = intensity.reshape(k, p)
+    obs_mask = torch.isfinite(flat_i) & (flat_e > 0)  # (K, P)
+    pixel_mask = torch.ones(p, dtype=torch.bool, device=device)
+    if mask is not None:
+        if not isinstance(mask, Tensor):
+            raise TypeError("mask must be a torch.Tensor (bool) or None")
+        mask = mask.to(device=device).bool()
+        if mask.shape == spatial:
+            pixel_mask = mask.reshape(p)
+        elif mask.shape == (k, *spatial):
+            obs_mask = obs_mask & mask.reshape(k, p)
+        else:
+            raise ValueError(
+                f"mask must have the pixel shape {spatial} or the observation shape {(k, *spatial)}; "
+                f"got {tuple(mask.shape)}"
+            )
+    obs_mask = obs_mask & pixel_mask.unsqueeze(0)
+    # Non-finite observations are never used; zero them so that no NaN leaks into sums.
+    flat_i = torch.where(obs_mask, flat_i, torch.zeros((), dtype=dtype, device=device))
+
+    if view_dirs is None:
+        view = torch.tensor([[0.0, 0.0, -1.0]], dtype=dtype, device=device)
+    else:
+        view_dirs = view_dirs.to(device=device, dtype=dtype)
+        if view_dirs.shape == (3,):
+            view = view_dirs.reshape(1, 3)
+        elif view_dirs.shape == (*spatial, 3):
+            view = view_dirs.reshape(p, 3)
+        else:
+            raise ValueError(
+                f"view_dirs must have shape (3,) or (*S, 3) = {(*spatial, 3)} (unit, surface → "
+                f"camera); got {tuple(view_dirs.shape)}"
+            )
+        vn = view.norm(dim=-1)
+        if not bool(torch.isfinite(view).all()) or bool(((vn - 1.0).abs() > _UNIT_TOLERANCE).any()):
+            raise ValueError("view_dirs must be finite unit vectors (surface → camera)")
+
+    return _Flat(flat_i, flat_lights, flat_e, pixel_mask, obs_mask, view, spatial)
+
+
+def _check_light_geometry(flat: _Flat, max_condition: float, allow_degenerate: bool) -> bool:
+    """Raise (or, with ``allow_degenerate``, report) a degenerate light set: K < 3 or coplanar.
+
+    Returns True when the full light set is degenerate (only possible with allow_degenerate).
+    """
+    k = flat.intensity.shape[0]
+    hint = " (pass allow_degenerate=True for a minimum-norm answer flagged invalid)"
+    if k < 3:
+        if allow_degenerate:
+            logger.warning("photometric stereo with %d light(s): returning a degenerate answer", k)
+            return True
+        raise ValueError(
+            f"lights: got {k} light(s); Lambertian photometric stereo needs at least 3 lights "
+            f"whose directions are not coplanar{hint}"
+        )
+    if flat.lights.ndim == 2:
+        weighted = flat.lights * flat.light_intensity  # (K, 3) with E (K, 1) shared
+        if flat.light_intensity.shape[1] == 1:
+            cond = _condition_from_gram(weighted.T @ weighted)
+            bad = bool(cond > max_condition)
+            worst = float(cond)
+        else:
+            gram = torch.einsum("kp,ki,kj->pij", flat.light_intensity**2, flat.lights, flat.lights)
+            cond = _condition_from_gram(gram)[flat.pixel_mask]
+            bad = bool((cond > max_condition).any()) if cond.numel() else False
+            worst = float(cond.max()) if cond.numel() else 0.0
+    else:
+        gram = torch.einsum(
+            "kp,kpi,kpj->pij", flat.light_intensity.expand(k, -1) ** 2, flat.lights, flat.lights
+        )
+        cond = _condition_from_gram(gram)[flat.pixel_mask]
+        bad = bool((cond > max_condition).any()) if cond.numel() else False
+        worst = float(cond.max()) if cond.numel() else 0.0
+    if bad:
+        if allow_degenerate:
+            logger.warning("lights nearly coplanar (condition %.3g): returning a degenerate answer", worst)
+            return True
+        raise ValueError(
+            f"lights: the {k} light directions are (nearly) coplanar — condition number "
+            f"{worst:.3g} of the intensity-weighted light matrix exceeds max_condition="
+            f"{max_condition:g}; add a light out of their plane{hint}"
+        )
+    return False
+
+
+# --------------------------------------------------------------------------------------------
+# Batched weighted least squares
+# --------------------------------------------------------------------------------------------
+
+
+def _condition_from_gram(gram: Tensor) -> Tensor:
+    """σ_max / σ_min of a light matrix M from its Gram matrix A = MᵀM; (..., 3, 3) → (...)."""
+    eig = torch.linalg.eigvalsh(gram)  # (..., 3) ascending
+    lo = eig[..., 0].clamp_min(0.0)
+    hi = eig[..., 2].clamp_min(0.0)
+    ratio = torch.where(
+        lo > 0, hi / torch.where(lo > 0, lo, torch.ones_like(lo)), torch.full_like(lo, math.inf)
+    )
+    return ratio.sqrt()
+
+
+def _normal_equations(flat: _Flat, weights: Tensor) -> tuple[Tensor, Tensor]:
+    """A = Σ w E² L Lᵀ (P, 3, 3) and r = Σ w E I L (P, 3) for observation weights (K, P)."""
+    we2 = weights * flat.light_intensity**2  # (K, P)
+    wei = weights * flat.light_intensity * flat.intensity  # (K, P)
+    if flat.lights.ndim == 2:
+        gram = torch.einsum("kp,ki,kj->pij", we2, flat.lights, flat.lights)
+        rhs = torch.einsum("kp,ki->pi", wei, flat.lights)
+    else:
+        gram = torch.einsum("kp,kpi,kpj->pij", we2, flat.lights, flat.lights)
+        rhs = torch.einsum("kp,kpi->pi", wei, flat.lights)
+    return gram, rhs
+
+
+def _adjugate_sym3(a: Tensor) -> tuple[Tensor, Tensor]:
+    """Adjugate (P, 3, 3) and determinant (P,) of symmetric 3×3 matrices (P, 3, 3)."""
+    a00, a01, a02 = a[:, 0, 0], a[:, 0, 1], a[:, 0, 2]
+    a11, a12, a22 = a[:, 1, 1], a[:, 1, 2], a[:, 2, 2]
+    c00 = a11 * a22 - a12 * a12
+    c01 = a02 * a12 - a01 * a22
+    c02 = a01 * a12 - a02 * a11
+    c11 = a00 * a22 - a02 * a02
+    c12 = a01 * a02 - a00 * a12
+    c22 = a00 * a11 - a01 * a01
+    adj = torch.stack(
+        [
+            torch.stack([c00, c01, c02], -1),
+            torch.stack([c01, c11, c12], -1),
+            torch.stack([c02, c12, c22], -1),
+        ],
+        dim=-2,
+    )
+    det = a00 * c00 + a01 * c01 + a02 * c02
+    return adj, det
+
+
+def _solve_sym3(gram: Tensor, rhs: Tensor, max_condition: float) -> tuple[Tensor, Tensor, Tensor]:
+    """Least-squares solve of A b = r per pixel; min-norm where A is (nearly) singular.
+
+    Args:
+        gram: (P, 3, 3) symmetric positive semi-definite A.
+        rhs: (P, 3).
+        max_condition: pixels with cond(M) = sqrt(cond(A)) above this use the pseudo-inverse.
+
+    Returns:
+        b (P, 3), A⁻¹ or A⁺ (P, 3, 3), condition σ_max/σ_min of M (P,) (inf when singular).
+    """
+    dtype = gram.dtype
+    # Scale each A to unit trace so the determinant neither under- nor overflows.
+    scale = gram.diagonal(dim1=-2, dim2=-1).sum(-1)  # (P,)
+    safe_scale = torch.where(scale > 0, scale, torch.ones_like(scale))
+    a = gram / safe_scale[:, None, None]
+    adj, det = _adjugate_sym3(a)
+    cond = _condition_from_gram(a)  # (P,)
+    good = (scale > 0) & (det > 0) & (cond <= max_condition)
+    safe_det = torch.where(good, det, torch.ones_like(det))
+    inv = adj / safe_det[:, None, None] / safe_scale[:, None, None]  # (P, 3, 3)
+    bad = ~good
+    if bool(bad.any()):
+        # Minimum-norm least squares through the pseudo-inverse (eigen-decomposition of A).
+        eigval, eigvec = torch.linalg.eigh(a[bad])  # (B, 3), (B, 3, 3)
+        rtol = 1e3 * torch.finfo(dtype).eps
+        keep = eigval > rtol * eigval[:, -1:].clamp_min(torch.finfo(dtype).tiny)
+        inv_val = torch.where(
+            keep, 1.0 / torch.where(keep, eigval, torch.ones_like(eigval)), torch.zeros_like(eigval)
+        )
+        pinv = (eigvec * inv_val[:, None, :]) @ eigvec.transpose(-1, -2) / safe_scale[bad, None, None]
+        inv = inv.clone()
+        inv[bad] = pinv
+    b = (inv @ rhs.unsqueeze(-1)).squeeze(-1)  # (P, 3)
+    return b, inv, cond
+
+
+def _residual_and_leverage(flat: _Flat, b: Tensor, inv: Tensor, weights: Tensor) -> tuple[Tensor, Tensor]:
+    """Residuals I − E L·b (K, P) and leverages h = w E² Lᵀ A⁻¹ L (K, P) of a weighted fit."""
+    k, p = flat.intensity.shape
+    e_full = flat.light_intensity.expand(k, p)
+    if flat.lights.ndim == 2:
+        l_dot_b = flat.lights @ b.T  # (K, P)
+        leverage = torch.einsum("ki,pij,kj->kp", flat.lights, inv, flat.lights)
+    else:
+        l_dot_b = (flat.lights * b.unsqueeze(0)).sum(-1)
+        leverage = torch.einsum("kpi,pij,kpj->kp", flat.lights, inv, flat.lights)
+    leverage = (leverage * e_full**2 * weights).clamp(0.0, 1.0)
+    return flat.intensity - e_full * l_dot_b, leverage
+
+
+def _threshold(flat: _Flat, b: Tensor, outlier_rel: float, noise_part: Tensor) -> Tensor:
+    """Outlier threshold τ (K, P) = max(outlier_rel · |b| · E_k, noise_part), strictly > 0."""
+    k, p = flat.intensity.shape
+    relative = outlier_rel * b.norm(dim=-1).unsqueeze(0) * flat.light_intensity.expand(k, p)
+    return torch.maximum(relative, noise_part).clamp_min(torch.finfo(b.dtype).tiny)
+
+
+def _normals_from_b(b: Tensor, view: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Unit normals (P, 3) facing the camera, albedo (P,) and a back-facing flag (P,) from b = ρN."""
+    albedo = b.norm(dim=-1)  # (P,)
+    tiny = torch.finfo(b.dtype).tiny
+    nonzero = albedo > tiny**0.5
+    view = view.expand_as(b)
+    n = torch.where(
+        nonzero[:, None], b / torch.where(nonzero, albedo, torch.ones_like(albedo))[:, None], view
+    )
+    n_dot_v = (n * view).sum(-1, keepdim=True)  # (P, 1)
+    back = n_dot_v.squeeze(-1) < 0
+    n = torch.where(back[:, None], n - 2.0 * n_dot_v * view, n)  # flip rule: mirror across ⟂ V
+    n = n / n.norm(dim=-1, keepdim=True).clamp_min(tiny)
+    albedo = torch.where(nonzero, albedo, torch.zeros_like(albedo))
+    return n, albedo, back
+
+
+# --------------------------------------------------------------------------------------------
+# Public API
+# --------------------------------------------------------------------------------------------
+
+
+def lambertian_ps(
+    intensity: Tensor,
+    lights: Tensor,
+    light_intensity: Tensor | None = None,
+    mask: Tensor | None = None,
+    *,
+    view_dirs: Tensor | None = None,
+    max_condition: float = 1e3,
+    allow_degenerate: bool = False,
+) -> tuple[Tensor, Tensor]:
+    """Plain Lambertian photometric stereo: one least-squares fit per pixel over all observations.
+
+    Every (finite, unmasked) observation is used, shadowed and specular ones included: this is
+    the textbook estimator, exact for unshadowed Lambertian data. Use
+    :func:`robust_lambertian_ps` when shadows or highlights are present.
+
+    Args:
+        intensity: (K, P) or (K, H, W) — generally (K, *S) — linear intensities, K lights first.
+            Non-finite values are ignored (treated as masked observations).
+        lights: (K, 3) unit directions surface → light, camera frame (directional lights), or
+            (K, *S, 3) per pixel (point lights; put the 1/r² fall-off into ``light_intensity``).
+        light_intensity: (K,) or (K, *S) relative intensities E ≥ 0 (default all 1; 0 disables).
+        mask: None, a (*S,) bool pixel mask (False pixels get N = V, albedo 0) or a (K, *S) bool
+            observation mask (False observations are left out of that pixel's fit).
+        view_dirs: None (orthographic, V = (0, 0, -1)), (3,) or (*S, 3) unit directions surface →
+            camera; only used by the flip rule.
+        max_condition: largest accepted condition number σ_max/σ_min of the E-weighted light
+            matrix; above it the light set counts as coplanar.
+        allow_degenerate: with fewer than 3 lights or coplanar lights, return the minimum-norm
+            least-squares answer (logged as a warning) instead of raising ValueError.
+
+    Returns:
+        normals (*S, 3): unit, camera frame, ``N · V ≥ 0`` (flip rule: see the module docstring).
+        albedo (*S,): ≥ 0, such that ``I ≈ albedo · E · (N · L)``.
+
+    Raises:
+        ValueError: bad shapes, non-unit or non-finite lights, fewer than 3 lights or coplanar
+            lights (unless ``allow_degenerate``).
+    """
+    flat = _prepare(intensity, lights, light_intensity, mask, view_dirs)
+    _check_light_geometry(flat, max_condition, allow_degenerate)
+    weights = flat.obs_mask.to(flat.intensity.dtype)  # (K, P)
+    gram, rhs = _normal_equations(flat, weights)
+    b, _, _ = _solve_sym3(gram, rhs, max_condition)
+    normals, albedo, _ = _normals_from_b(b, flat.view)
+    return normals.reshape(*flat.spatial, 3), albedo.reshape(flat.spatial)
+
+
+def robust_lambertian_ps(
+    intensity: Tensor,
+    lights: Tensor,
+    light_intensity: Tensor | None = None,
+    mask: Tensor | None = None,
+    *,
+    view_dirs: Tensor | None = None,
+    dark_rel: float = 0.02,
+    dark_abs: float = 0.0,
+    saturation: float | None = None,
+    outlier_rel: float = 0.03,
+    noise_std: float = 0.0,
+    outlier_sigma: float = 4.0,
+    max_trims: int | None = None,
+    max_leverage: float = 0.95,
+    max_condition: float = 30.0,
+    allow_degenerate: bool = False,
+) -> RobustPSResult:
+    """Lambertian photometric stereo that discards shadowed and specular observations.
+
+    Per pixel:
+
+    1. **Shadows / saturation.** An observation is dropped when ``I/E ≤ max(dark_abs,
+       dark_rel · max_k I_k/E_k)`` (attached or cast shadow: the Lambertian model's ``max(0, ·)``
+       is not linear there), when ``I ≥ saturation`` (a clipped value is only a lower bound), or
+       when it is non-finite or masked.
+    2. **Highlights.** Fit b by least squares, then compute for every used observation its
+       *deleted residual* ``d_k = r_k / (1 − h_k)`` — the error of predicting ``I_k`` from the
+       other observations (``r`` the residual, ``h`` the leverage ``w E² Lᵀ A⁻¹ L``). The
+       observation with the largest ``d_k / τ_k`` among those with ``d_k > τ_k``,
+       ``τ_k = max(outlier_rel · albedo · E_k, outlier_sigma · noise_std / sqrt(1 − h_k))``, is
+       removed (only positive residuals: a highlight adds light), provided at least 4 remain
+       before removal and ``h_k < max_leverage`` (an observation the fit cannot do without
+       cannot be tested). Repeat up to ``max_trims`` times, one observation per pixel per round.
+    3. **Flags.** Pixels with fewer than 3 used observations, or whose used lights have a
+       condition number above ``max_condition`` (nearly coplanar), or whose fit points away
+       from the camera, or where a used observation still misses the final fit by more than
+       ``max(outlier_rel · albedo · E_k, outlier_sigma · noise_std)``, are flagged invalid with a
+       :class:`PSReason`; they still get a finite (minimum-norm / flipped) normal, never NaN.
+
+    Limitation: trimming starts from the least-squares fit of all lit observations, so it
+    isolates highlights that touch a minority of a pixel's lights (sharp lobes); a broad lobe
+    over about half of the lit lights can steer it to the wrong subset. Such pixels are often,
+    not always, caught by the INCONSISTENT flag.
+
+    Args:
+        intensity: (K, *S), e.g. (K, P) or (K, H, W), linear intensities.
+        lights: (K, 3) or (K, *S, 3) unit directions surface → light, camera frame.
+        light_intensity: (K,) or (K, *S) relative intensities E ≥ 0 (default 1).
+        mask: None, (*S,) bool pixel mask, or (K, *S) bool observation mask.
+        view_dirs: None (orthographic V = (0, 0, -1)), (3,) or (*S, 3), surface → camera.
+        dark_rel: shadow threshold relative to the pixel's brightest (E-normalised) observation.
+        dark_abs: absolute shadow threshold on I/E (set it a few noise σ above 0 for noisy data).
+        saturation: intensities ≥ this are dropped (e.g. 1.0 for normalised clipped images).
+        outlier_rel: highlight threshold relative to the fitted albedo · E_k.
+        noise_std: intensity noise σ (absolute), for the noise-based part of the threshold.
+        outlier_sigma: multiple of the deleted-residual noise σ used in the threshold.
+        max_trims: most highlight observations removed per pixel (default K − 3).
+        max_leverage: observations with a larger leverage are never removed.
+        max_condition: largest accepted condition number of a pixel's used light matrix; also the
+            limit above which the *full* light set counts as coplanar (ValueError).
+        allow_degenerate: with < 3 lights or coplanar lights, return minimum-norm normals with
+            ``valid = False`` everywhere (reason TOO_FEW_LIGHTS / ILL_CONDITIONED) instead of
+            raising.
+
+    Returns:
+        :class:`RobustPSResult` (normals (*S, 3), albedo (*S,), valid, reason, used, n_used,
+        condition).
+
+    Raises:
+        ValueError: invalid shapes or values, fewer than 3 lights, coplanar lights (unless
+            ``allow_degenerate``).
+    """
+    for name, value in (
+        ("dark_rel", dark_rel),
+        ("dark_abs", dark_abs),
+        ("outlier_rel", outlier_rel),
+        ("noise_std", noise_std),
+        ("outlier_sigma", outlier_sigma),
+    ):
+        if not math.isfinite(value) or value < 0:
+            raise ValueError(f"{name} must be finite and ≥ 0; got {value}")
+    if max_trims is not None and max_trims < 0:
+        raise ValueError(f"max_trims must be ≥ 0; got {max_trims}")
+    if not 0 < max_leverage <= 1:
+        raise ValueError(f"max_leverage must be in (0, 1]; got {max_leverage}")
+    if not max_condition >= 1:
+        raise ValueError(f"max_condition must be ≥ 1; got {max_condition}")
+    if saturation is not None and not math.isfinite(saturation):
+        raise ValueError(f"saturation must be finite or None; got {saturation}")
+
+    flat = _prepare(intensity, lights, light_intensity, mask, view_dirs)
+    degenerate = _check_light_geometry(flat, max_condition, allow_degenerate)
+    k, p = flat.intensity.shape
+    dtype, device = flat.intensity.dtype, flat.intensity.device
+    zero = torch.zeros((), dtype=dtype, device=device)
+
+    # 1. shadows, saturation, non-finite, masked
+    e_safe = torch.where(
+        flat.light_intensity > 0, flat.light_intensity, torch.ones_like(flat.light_intensity)
+    )
+    shading = flat.intensity / e_safe  # (K, P) = albedo · N·L for a Lambertian observation
+    brightest = torch.where(flat.obs_mask, shading, torch.full_like(shading, -math.inf)).amax(0)  # (P,)
+    brightest = torch.where(torch.isfinite(brightest), brightest, zero)
+    dark_threshold = torch.clamp(dark_rel * brightest, min=dark_abs)  # (P,)
+    used = flat.obs_mask & (shading > dark_threshold.unsqueeze(0))
+    if saturation is not None:
+        used = used & (flat.intensity < saturation)
+
+    # 2. iterative removal of specular observations
+    trims = max(k - 3, 0) if max_trims is None else max_trims
+    for iteration in range(trims + 1):
+        weights = used.to(dtype)
+        gram, rhs = _normal_equations(flat, weights)
+        b, inv, cond = _solve_sym3(gram, rhs, max_condition)  # (P, 3), (P, 3, 3), (P,)
+        if iteration == trims:
+            break
+        residual, leverage = _residual_and_leverage(flat, b, inv, weights)  # (K, P) each
+        one_minus_h = (1.0 - leverage).clamp_min(torch.finfo(dtype).eps)
+        deleted = residual / one_minus_h  # error of predicting I_k from the other observations
+        tau = _threshold(flat, b, outlier_rel, outlier_sigma * noise_std / one_minus_h.sqrt())
+        n_used = used.sum(0, keepdim=True)  # (1, P)
+        candidate = used & (deleted > tau) & (leverage < max_leverage) & (n_used >= 4)
+        if not bool(candidate.any()):
+            break
+        score = torch.where(candidate, deleted / tau, torch.full_like(deleted, -math.inf))
+        worst = score.argmax(0)  # (P,)
+        remove = torch.zeros_like(used).scatter_(0, worst.unsqueeze(0), True) & candidate
+        used = used & ~remove
+
+    # A used observation still off the final fit by more than the threshold: the trimming could
+    # not isolate the highlight (too many contaminated lights) or the pixel is not Lambertian.
+    residual, _ = _residual_and_leverage(flat, b, inv, used.to(dtype))
+    tau = _threshold(flat, b, outlier_rel, torch.full_like(residual, outlier_sigma * noise_std))
+    inconsistent = (used & (residual.abs() > tau)).any(0)  # (P,)
+
+    # 3. flags
+    n_used = used.sum(0)  # (P,)
+    normals, albedo, back = _normals_from_b(b, flat.view)
+    cond = torch.where(n_used >= 3, cond, torch.full_like(cond, math.inf))
+    reason = torch.full((p,), int(PSReason.OK), dtype=torch.int64, device=device)
+    reason = torch.where(inconsistent, torch.full_like(reason, int(PSReason.INCONSISTENT)), reason)
+    reason = torch.where(back, torch.full_like(reason, int(PSReason.BACK_FACING)), reason)
+    reason = torch.where(cond > max_condition, torch.full_like(reason, int(PSReason.ILL_CONDITIONED)), reason)
+    reason = torch.where(n_used < 3, torch.full_like(reason, int(PSReason.TOO_FEW_LIGHTS)), reason)
+    if degenerate:
+        code = PSReason.TOO_FEW_LIGHTS if k < 3 else PSReason.ILL_CONDITIONED
+        reason = torch.where(reason == int(PSReason.OK), torch.full_like(reason, int(code)), reason)
+    reason = torch.where(flat.pixel_mask, reason, torch.full_like(reason, int(PSReason.MASKED)))
+    masked = ~flat.pixel_mask
+    normals = torch.where(masked[:, None], flat.view.expand_as(normals), normals)
+    albedo = torch.where(masked, zero, albedo)
+    valid = reason == int(PSReason.OK)
+    if logger.isEnabledFor(logging.DEBUG):
+        counts = torch.bincount(reason, minlength=len(PSReason)).tolist()
+        logger.debug("robust PS: %s", {r.name: counts[r.value] for r in PSReason})
+
+    s = flat.spatial
+    return RobustPSResult(
+        normals=normals.reshape(*s, 3),
+        albedo=albedo.reshape(s),
+        valid=valid.reshape(s),
+        reason=reason.reshape(s),
+        used=used.reshape(k, *s),
+        n_used=n_used.reshape(s),
+        condition=cond.reshape(s),
+    )

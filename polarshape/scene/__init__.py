@@ -1,0 +1,45 @@
+"""Simulated scenes: shapes, camera models, lights, materials, textures, ray casting, scene files.
+
+Camera frame everywhere (OpenCV): x right, y down, z forward; metres. See
+:mod:`polarshape.render` for shading and :class:`polarshape.acquisition.simulated.SimulatedCamera`
+for the camera built on top.
+"""
+
+from polarshape.scene.cameras import CameraModel, OrthographicCamera, PerspectiveCamera
+from polarshape.scene.config import SceneConfig, load_scene_config, parse_scene_config
+from polarshape.scene.geometry import BlobShape, MeshShape, PlaneShape, Shape, SphereShape, TorusShape
+from polarshape.scene.lights import DirectionalLight, Light, PointLight
+from polarshape.scene.materials import BaekMaterial, FMBRDFMaterial, LambertianMaterial, Material
+from polarshape.scene.objects import Scene, SceneObject
+from polarshape.scene.raycast import GeometryBuffers, cast_shadow_mask, rasterize, superpixel_ground_truth
+from polarshape.scene.textures import AlbedoTexture, make_texture
+
+__all__ = [
+    "AlbedoTexture",
+    "BaekMaterial",
+    "BlobShape",
+    "CameraModel",
+    "DirectionalLight",
+    "FMBRDFMaterial",
+    "GeometryBuffers",
+    "LambertianMaterial",
+    "Light",
+    "Material",
+    "MeshShape",
+    "OrthographicCamera",
+    "PerspectiveCamera",
+    "PlaneShape",
+    "PointLight",
+    "Scene",
+    "SceneConfig",
+    "SceneObject",
+    "Shape",
+    "SphereShape",
+    "TorusShape",
+    "cast_shadow_mask",
+    "load_scene_config",
+    "make_texture",
+    "parse_scene_config",
+    "rasterize",
+    "superpixel_ground_truth",
+]

@@ -1,0 +1,118 @@
+"""Materials of simulated objects: polarimetric reflectance models with a per-point albedo scale.
+
+A material answers one question: the Stokes vector (s0, s1, s2) reflected toward V for unit
+irradiance at normal incidence from direction L (the N·L foreshortening is inside), in each
+pixel's Stokes frame (spec fmbrdf.md §1), zero where N·L ≤ 0 or N·V ≤ 0. A per-point
+``albedo_scale`` multiplies the diffuse/body albedo (k_b or k_d) — how textures act.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal, Protocol, runtime_checkable
+
+import torch
+from torch import Tensor
+
+from polarshape.brdf.baselines import baek_pbrdf_stokes, lambertian_stokes
+from polarshape.brdf.fmbrdf import FMBRDFTables, build_tables, check_param, fmbrdf_stokes
+
+
+@runtime_checkable
+class Material(Protocol):
+    """What the renderer needs from a material."""
+
+    def stokes(self, normal: Tensor, light: Tensor, view: Tensor, albedo_scale: Tensor) -> Tensor:
+        """Stokes for unit irradiance.
+
+        Args:
+            normal, light, view: (M, 3) unit N, L (to the light), V (to the camera), camera frame.
+            albedo_scale: (M,) multiplier of the diffuse/body albedo (1 = untextured).
+
+        Returns:
+            (M, 3) (s0, s1, s2) in each point's Stokes frame (spec §1).
+        """
+        ...
+
+
+@dataclass
+class FMBRDFMaterial:
+    """The Fresnel Microfacet BRDF (spec §2–§7), via :func:`polarshape.brdf.fmbrdf_stokes`.
+
+    The fast evaluator's tables for (ior, alpha, beta, kappa) are built once per device and kept,
+    so rendering many lights costs one table build.
+
+    Attributes:
+        ior: μ. k_s: surface albedo. k_b: body albedo (scaled per point by a texture).
+        alpha: roughness, radians. beta: shape of D. kappa: microfacet correlation.
+        exact: use the reference quadrature instead of the tables (slow; tests only).
+    """
+
+    ior: float = 1.5
+    k_s: float = 1.0
+    k_b: float = 0.5
+    alpha: float = 0.3
+    beta: float = 2.0
+    kappa: float = 0.0
+    exact: bool = False
+    _tables: dict[str, FMBRDFTables] = field(default_factory=dict, init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        for name in ("ior", "k_s", "k_b", "alpha", "beta", "kappa"):
+            check_param(name, float(getattr(self, name)))
+
+    def _tables_on(self, device: torch.device) -> FMBRDFTables:
+        key = str(device)
+        if key not in self._tables:
+            self._tables[key] = build_tables(ior=self.ior, alpha=self.alpha, beta=self.beta, kappa=self.kappa, device=device)
+        return self._tables[key]
+
+    def stokes(self, normal: Tensor, light: Tensor, view: Tensor, albedo_scale: Tensor) -> Tensor:
+        params = dict(ior=self.ior, k_s=self.k_s, k_b=self.k_b * albedo_scale, alpha=self.alpha, beta=self.beta, kappa=self.kappa)
+        if self.exact:
+            return fmbrdf_stokes(normal, light, view, exact=True, **params)
+        return fmbrdf_stokes(normal, light, view, tables=self._tables_on(normal.device), **params)
+
+
+@dataclass
+class LambertianMaterial:
+    """Lambertian, unpolarised (spec §10): s0 = (k_d/π)(N·L)₊, s1 = s2 = 0, via
+    :func:`polarshape.brdf.baselines.lambertian_stokes`."""
+
+    k_d: float = 0.5
+
+    def __post_init__(self) -> None:
+        if not self.k_d >= 0:
+            raise ValueError(f"lambertian k_d must be >= 0, got {self.k_d}")
+
+    def stokes(self, normal: Tensor, light: Tensor, view: Tensor, albedo_scale: Tensor) -> Tensor:
+        return lambertian_stokes(normal, light, view, k_d=self.k_d * albedo_scale)
+
+
+@dataclass
+class BaekMaterial:
+    """Baek et al. 2018 pBRDF (spec §10), via :func:`polarshape.brdf.baselines.baek_pbrdf_stokes`.
+
+    Attributes:
+        ior: μ. k_s: specular albedo. k_d: diffuse albedo (scaled per point by a texture).
+        alpha: roughness (GGX α, or Beckmann RMS slope). distribution: ``ggx`` or ``beckmann``
+            (Beckmann = Mitsuba 3's ``pplastic``).
+    """
+
+    ior: float = 1.5
+    k_s: float = 1.0
+    k_d: float = 0.5
+    alpha: float = 0.3
+    distribution: Literal["ggx", "beckmann"] = "ggx"
+
+    def __post_init__(self) -> None:
+        if not (self.ior >= 1 and self.k_s >= 0 and self.k_d >= 0 and self.alpha > 0):
+            raise ValueError(f"baek material needs ior >= 1, k_s >= 0, k_d >= 0, alpha > 0; got {self}")
+        if self.distribution not in ("ggx", "beckmann"):
+            raise ValueError(f"baek distribution must be ggx or beckmann, got {self.distribution!r}")
+
+    def stokes(self, normal: Tensor, light: Tensor, view: Tensor, albedo_scale: Tensor) -> Tensor:
+        return baek_pbrdf_stokes(
+            normal, light, view, ior=self.ior, k_s=self.k_s, k_d=self.k_d * albedo_scale, alpha=self.alpha,
+            distribution=self.distribution,
+        )

@@ -1,0 +1,219 @@
+"""Capture sessions: bracketing, averaging, atomic per-light saving, resume after an interruption."""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import pytest
+import yaml
+
+from polarshape.acquisition.aravis import AravisCamera, import_aravis
+from polarshape.acquisition.camera import CameraError, Frame
+from polarshape.acquisition.fake_gige import REFERENCE_EXPOSURE_US, FakeGigECamera
+from polarshape.acquisition.lights import LightSpec, SimulatedLightRig
+from polarshape.acquisition.session import (
+    CAPTURE_FORMAT,
+    average_frames,
+    capture_session,
+    load_session_config,
+    run_capture_session,
+)
+from polarshape.io.atomic import OutputExistsError
+
+SPECS = [LightSpec(direction=(np.sin(t), 0.1, -np.cos(t)), intensity=1.0) for t in np.linspace(0.1, 0.8, 5)]
+
+
+@dataclass
+class _StubCamera:
+    """Counts proportional to exposure x (light + 1); 12-bit; records what it was asked."""
+
+    light: int = 0
+    exposure_us: float = 1000.0
+    captured: list[tuple[int, float]] = field(default_factory=list)
+
+    def open(self) -> None: ...
+
+    def close(self) -> None: ...
+
+    def configure(self, *, exposure_us: float | None = None, gain_db: float | None = None,
+                  pixel_format: str | None = None) -> None:
+        if exposure_us is not None:
+            self.exposure_us = exposure_us
+
+    def set_light(self, index: int) -> None:
+        self.light = index
+
+    def capture(self, timeout_s: float = 5.0) -> Frame:
+        ramp = np.linspace(0.0, 1.0, 64 * 48).reshape(48, 64)
+        counts = np.minimum(4095, np.rint(ramp * self.exposure_us * (self.light + 1) * 0.2)).astype(np.uint16)
+        self.captured.append((self.light, self.exposure_us))
+        return Frame(image=counts, bit_depth=12, pixel_format="PolarizeMono12", exposure_us=self.exposure_us,
+                     gain_db=0.0, frame_id=len(self.captured))
+
+
+class _FailingRig(SimulatedLightRig):
+    def __init__(self, *args: Any, fail_at: int | None = None, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.fail_at = fail_at
+        self.switched: list[int] = []
+
+    def switch(self, index: int) -> None:
+        if index == self.fail_at:
+            raise KeyboardInterrupt("operator pressed Ctrl-C")
+        self.switched.append(index)
+        super().switch(index)
+
+
+def test_average_frames_rounds_the_mean() -> None:
+    a = Frame(np.array([[1, 4]], np.uint16), 12, "PolarizeMono12", 1.0, 0.0)
+    b = Frame(np.array([[2, 4]], np.uint16), 12, "PolarizeMono12", 1.0, 0.0)
+    np.testing.assert_array_equal(average_frames([a, b, b]), [[2, 4]])
+    with pytest.raises(ValueError, match="at least one frame"):
+        average_frames([])
+
+
+def test_bracketing_interruption_and_resume(tmp_path: Path) -> None:
+    cam = _StubCamera()
+    out = tmp_path / "cap"
+    rig = _FailingRig(cam, SPECS, fail_at=3)
+    with pytest.raises(KeyboardInterrupt):
+        run_capture_session(cam, rig, out, frames_per_light=2, exposure_bracket=[1000, 4000, 16000])
+    saved = sorted(p.name for p in (out / "frames").iterdir())
+    assert saved == ["000.json", "000.png", "001.json", "001.png", "002.json", "002.png"]
+    assert not (out / "capture.yaml").exists()
+    before = {p: p.read_bytes() for p in (out / "frames").iterdir()}
+
+    with pytest.raises(OutputExistsError, match="already holds frames"):
+        run_capture_session(cam, SimulatedLightRig(cam, SPECS), out, resume=False)
+
+    rig2 = _FailingRig(cam, SPECS)
+    path = run_capture_session(cam, rig2, out, frames_per_light=2, exposure_bracket=[1000, 4000, 16000])
+    assert rig2.switched == [3, 4]  # lights 0-2 were kept
+    assert all(p.read_bytes() == data for p, data in before.items())
+
+    doc = yaml.safe_load(path.read_text())
+    assert doc["format"] == CAPTURE_FORMAT
+    assert doc["camera"]["bit_depth"] == 12
+    assert doc["camera"]["mosaic"]["layout"] == [[90, 45], [135, 0]]
+    chosen = []
+    for i, light in enumerate(doc["lights"]):
+        meta = json.loads((out / "frames" / f"{i:03d}.json").read_text())
+        assert meta["frames_averaged"] == 2 and meta["saturated_fraction"] < 0.001
+        chosen.append(meta["exposure_us"])
+        assert light["frame"] == f"frames/{i:03d}.png"
+        assert light["direction"] == pytest.approx(list(SPECS[i].direction))
+        image = cv2.imread(str(out / light["frame"]), cv2.IMREAD_UNCHANGED)
+        assert image.dtype == np.uint16 and image.shape == (48, 64)
+        assert image.max() <= 4095
+    # the longest exposure with < 0.1 % saturated pixels: light 0 peaks at 3200 counts at 16000 µs,
+    # light 1 would saturate 36 % of its pixels at 16000 µs
+    assert chosen == [16000, 4000, 4000, 4000, 4000]
+    # lights captured at shorter exposures are given proportionally lower intensities
+    assert [round(light["intensity"], 6) for light in doc["lights"]] == [1.0, 0.25, 0.25, 0.25, 0.25]
+
+    # a complete capture is returned as is
+    assert run_capture_session(cam, _FailingRig(cam, SPECS, fail_at=0), out) == path
+
+
+def test_written_capture_loads_with_load_capture(tmp_path: Path) -> None:
+    module = pytest.importorskip("polarshape.io.capture", reason="polarshape.io.capture not written yet")
+    cam = _StubCamera()
+    run_capture_session(cam, SimulatedLightRig(cam, SPECS), tmp_path / "cap", frames_per_light=1)
+    capture = module.load_capture(tmp_path / "cap")
+    assert capture is not None
+
+
+def _aravis_or_skip() -> None:
+    try:
+        import_aravis()
+    except CameraError as exc:
+        if os.environ.get("POLARSHAPE_REQUIRE_ARAVIS") == "1":
+            pytest.fail(f"POLARSHAPE_REQUIRE_ARAVIS=1 but Aravis is unusable: {exc}")
+        pytest.skip(f"Aravis/PyGObject not installed: {exc}")
+
+
+def test_session_over_gige_with_interruption(tmp_path: Path) -> None:
+    _aravis_or_skip()
+    out = tmp_path / "gige"
+    with FakeGigECamera(serial="PSSESSION", width=128, height=64) as fake, \
+            AravisCamera(fake.address, trigger="software", packet_size=1400) as cam:
+        cam.configure(pixel_format="PolarizeMono8")
+        with pytest.raises(KeyboardInterrupt):
+            run_capture_session(cam, _FailingRig(fake, SPECS, fail_at=3), out, frames_per_light=2,
+                                exposure_bracket=[2500, 9000, 20000])
+        rig = _FailingRig(fake, SPECS)
+        path = run_capture_session(cam, rig, out, frames_per_light=2, exposure_bracket=[2500, 9000, 20000])
+        assert rig.switched == [3, 4]
+        for i in range(len(SPECS)):
+            meta = json.loads((out / "frames" / f"{i:03d}.json").read_text())
+            assert meta["exposure_us"] == 9000  # 20000 saturates half the pixels, 9000 none
+            records = [fake.fill_record(fid) for fid in meta["frame_ids"]]
+            assert all(r.light == i and r.exposure_us == 9000 for r in records)
+            expected = np.rint(sum(r.image().astype(np.float64) for r in records) / len(records))
+            image = cv2.imread(str(out / "frames" / f"{i:03d}.png"), cv2.IMREAD_UNCHANGED)
+            assert image.dtype == np.uint8
+            np.testing.assert_array_equal(image, expected)
+            assert image.max() <= 255 * 9000 // REFERENCE_EXPOSURE_US
+    doc = yaml.safe_load(path.read_text())
+    assert doc["camera"]["model"] == "TRI050S-PC" and doc["camera"]["bit_depth"] == 8
+
+
+def test_capture_session_from_a_session_file(tmp_path: Path) -> None:
+    _aravis_or_skip()
+    session = tmp_path / "session.yaml"
+    session.write_text(yaml.safe_dump({
+        "camera": {"backend": "fake_gige", "address": "127.0.0.1", "trigger": "software", "packet_size": 1400,
+                   "pixel_format": "PolarizeMono12p", "exposure_us": 5000, "roi": [0, 0, 64, 32],
+                   "projection": "perspective", "intrinsics": {"fx": 2500.0, "fy": 2500.0, "cx": 32.0, "cy": 16.0}},
+        "rig": {"type": "simulated"},
+        "lights": [{"direction": [0.0, 0.0, -1.0]}, {"position": [0.1, -0.2, -0.5], "intensity": 2.0}],
+        "capture": {"frames_per_light": 1},
+    }))
+    path = capture_session(session, tmp_path / "out")
+    doc = yaml.safe_load(path.read_text())
+    assert doc["camera"]["projection"] == "perspective" and doc["camera"]["intrinsics"]["fx"] == 2500.0
+    assert doc["camera"]["bit_depth"] == 12
+    assert doc["lights"][1] == {"position": [0.1, -0.2, -0.5], "intensity": 2.0, "frame": "frames/001.png"}
+    image = cv2.imread(str(tmp_path / "out" / "frames" / "000.png"), cv2.IMREAD_UNCHANGED)
+    assert image.shape == (32, 64) and image.dtype == np.uint16
+    try:
+        from polarshape.io.capture import load_capture
+    except ImportError:
+        return
+    load_capture(tmp_path / "out")
+
+
+def test_session_file_errors_name_the_field(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(yaml.safe_dump({"camera": {"backend": "aravis"}, "rig": {"type": "manual"},
+                                   "lights": [{"direction": [0, 0, -1]}]}))
+    with pytest.raises(ValueError, match="camera.address is required"):
+        load_session_config(bad)
+    bad.write_text(yaml.safe_dump({"camera": {"backend": "aravis", "address": "10.0.0.2"},
+                                   "rig": {"type": "serial", "port": "/dev/ttyACM0"}}))
+    with pytest.raises(ValueError, match="lights: list one entry per light"):
+        load_session_config(bad)
+    bad.write_text("camera: [")
+    with pytest.raises(ValueError, match="not valid YAML"):
+        load_session_config(bad)
+    bad.write_text(yaml.safe_dump({"camera": {"backend": "aravis", "address": "10.0.0.2", "projection": "perspective"},
+                                   "rig": {"type": "manual"}, "lights": [{"direction": [0, 0, -1]}]}))
+    with pytest.raises(ValueError, match="camera.intrinsics .* is required with projection 'perspective'"):
+        load_session_config(bad)
+
+
+def test_run_refuses_bad_lights_and_missing_intrinsics_before_capturing(tmp_path: Path) -> None:
+    cam = _StubCamera()
+    behind = SimulatedLightRig(cam, [LightSpec(direction=(0, 0, 1))])
+    with pytest.raises(ValueError, match="light 0: direction .* z >= 0"):
+        run_capture_session(cam, behind, tmp_path / "a")
+    with pytest.raises(ValueError, match="needs intrinsics"):
+        run_capture_session(cam, SimulatedLightRig(cam, SPECS), tmp_path / "b",
+                            camera_info={"projection": "perspective"})
+    assert cam.captured == [] and not (tmp_path / "a").exists()

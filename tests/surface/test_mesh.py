@@ -1,0 +1,172 @@
+"""Tests of polarshape.surface.mesh: depth → mesh, Poisson meshing, PLY/OBJ export."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+from scipy.spatial import cKDTree
+
+from polarshape.io.atomic import OutputExistsError
+from polarshape.surface.mesh import depth_to_mesh, depth_to_points, poisson_mesh, write_mesh
+
+SIZE = 48
+
+
+def _sphere_depth(size: int = SIZE, pixel: float = 0.02, radius: float = 0.4, centre_z: float = 2.0):
+    """Orthographic depth/normals of the front of a sphere, circular mask; plus a stray pixel."""
+    vv, uu = np.mgrid[0:size, 0:size].astype(np.float64)
+    x = (uu - (size - 1) / 2) * pixel
+    y = (vv - (size - 1) / 2) * pixel
+    mask = x**2 + y**2 < (0.9 * radius) ** 2
+    z = np.where(mask, centre_z - np.sqrt(np.maximum(radius**2 - x**2 - y**2, 0.0)), np.nan)
+    n = np.stack([x, y, z - centre_z], axis=-1) / radius
+    mask[0, 0] = True  # an isolated valid pixel: a vertex without faces
+    z[0, 0] = 2.5
+    n[0, 0] = (0.0, 0.0, -1.0)
+    return z, mask, n
+
+
+def _perspective_plane(size: int = SIZE):
+    K = np.array([[60.0, 0.0, (size - 1) / 2], [0.0, 60.0, (size - 1) / 2], [0.0, 0.0, 1.0]])
+    vv, uu = np.mgrid[0:size, 0:size].astype(np.float64)
+    rays = np.stack([uu, vv, np.ones_like(uu)], axis=-1) @ np.linalg.inv(K).T
+    n0 = np.array([0.5, -0.3, -1.0]) / np.linalg.norm([0.5, -0.3, -1.0])
+    z = (n0 @ np.array([0.0, 0.0, 1.5])) / (rays @ n0)
+    return z, K, n0
+
+
+def _face_view_dots(mesh: trimesh.Trimesh, orthographic: bool) -> np.ndarray:
+    centroids = mesh.triangles_center
+    view = np.array([0.0, 0.0, -1.0]) if orthographic else -centroids / np.linalg.norm(centroids, axis=1, keepdims=True)
+    return np.sum(mesh.face_normals * view, axis=1)
+
+
+def test_one_vertex_per_valid_pixel_and_faces_face_the_camera() -> None:
+    z, mask, n = _sphere_depth()
+    mesh = depth_to_mesh(z, mask, pixel_size=0.02, normals=n)
+    valid = mask & np.isfinite(z)
+    assert len(mesh.vertices) == int(valid.sum())
+    full_blocks = valid[:-1, :-1] & valid[:-1, 1:] & valid[1:, :-1] & valid[1:, 1:]
+    assert len(mesh.faces) == 2 * int(full_blocks.sum())
+    assert np.all(_face_view_dots(mesh, orthographic=True) > 0)
+    # vertex i is the i-th valid pixel in raster order, at the camera-frame point of that pixel
+    points = depth_to_points(z, pixel_size=0.02)
+    np.testing.assert_allclose(mesh.vertices, points[valid])
+    np.testing.assert_allclose(mesh.vertex_normals, n[valid], atol=1e-12)
+
+
+def test_perspective_mesh_faces_the_camera_and_lies_on_the_rays() -> None:
+    z, K, n0 = _perspective_plane()
+    mesh = depth_to_mesh(z, projection="perspective", K=K)
+    assert len(mesh.vertices) == SIZE * SIZE and len(mesh.faces) == 2 * (SIZE - 1) ** 2
+    assert np.all(_face_view_dots(mesh, orthographic=False) > 0)
+    # reprojection of the vertices gives the pixel grid back
+    proj = mesh.vertices @ K.T
+    uv = proj[:, :2] / proj[:, 2:]
+    vv, uu = np.mgrid[0:SIZE, 0:SIZE]
+    np.testing.assert_allclose(uv, np.stack([uu.ravel(), vv.ravel()], axis=1), atol=1e-9)
+    # computed vertex normals (no normals given) equal the plane's normal
+    np.testing.assert_allclose(mesh.vertex_normals, np.broadcast_to(n0, mesh.vertex_normals.shape), atol=1e-9)
+
+
+def test_computed_normals_face_the_camera_and_isolated_vertices_get_the_view_direction() -> None:
+    z, mask, n = _sphere_depth()
+    mesh = depth_to_mesh(z, mask, pixel_size=0.02)
+    valid = mask & np.isfinite(z)
+    computed = mesh.vertex_normals
+    assert np.all(computed[:, 2] < 0)
+    np.testing.assert_allclose(computed[0], (0.0, 0.0, -1.0))  # the isolated pixel (0, 0)
+    inner = np.abs(np.sum(computed * n[valid], axis=1))
+    assert np.median(inner) > 0.999
+
+
+def test_vertex_colors_from_an_albedo_map() -> None:
+    z, mask, _ = _sphere_depth()
+    albedo = np.zeros((SIZE, SIZE, 3))
+    albedo[..., 0] = 1.0
+    albedo[..., 2] = 0.5
+    mesh = depth_to_mesh(z, mask, pixel_size=0.02, colors=albedo)
+    np.testing.assert_array_equal(mesh.visual.vertex_colors[:, :3], np.broadcast_to([255, 0, 128], (len(mesh.vertices), 3)))
+
+
+def test_depth_to_mesh_rejects_bad_input() -> None:
+    z, mask, n = _sphere_depth()
+    with pytest.raises(ValueError, match="mask must have shape"):
+        depth_to_mesh(z, mask[:-1])
+    with pytest.raises(ValueError, match="no valid pixel"):
+        depth_to_mesh(np.full((4, 4), np.nan))
+    with pytest.raises(ValueError, match="needs K"):
+        depth_to_mesh(z, projection="perspective")
+    with pytest.raises(ValueError, match="normals must have shape"):
+        depth_to_mesh(z, mask, normals=n[..., :2])
+    with pytest.raises(ValueError, match="colors must have shape"):
+        depth_to_mesh(z, mask, colors=np.zeros((3, 3)))
+
+
+def _sphere_cloud(count: int = 3000, radius: float = 0.3, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    n = rng.normal(size=(count, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    return np.array([0.0, 0.0, 2.0]) + radius * n, n
+
+
+def test_watertight_poisson_of_a_closed_sphere() -> None:
+    points, normals = _sphere_cloud()
+    mesh = poisson_mesh(points, normals, depth=6, watertight=True)
+    assert mesh.is_watertight
+    radii = np.linalg.norm(mesh.vertices - [0.0, 0.0, 2.0], axis=1)
+    assert np.all(np.abs(radii - 0.3) < 0.02)
+    assert mesh.volume == pytest.approx(4 / 3 * np.pi * 0.3**3, rel=0.05)
+
+
+def test_poisson_density_trimming_removes_the_extrapolated_back() -> None:
+    points, normals = _sphere_cloud()
+    front = points[:, 2] < 2.0  # only the camera-facing half was seen
+    closed = poisson_mesh(points[front], normals[front], depth=6, watertight=True)
+    trimmed = poisson_mesh(points[front], normals[front], depth=6, density_quantile=0.3)
+    assert len(trimmed.vertices) < 0.8 * len(closed.vertices)
+    assert trimmed.vertices[:, 2].max() < closed.vertices[:, 2].max()
+
+
+def test_poisson_rejects_bad_input() -> None:
+    with pytest.raises(ValueError, match=r"\(N, 3\)"):
+        poisson_mesh(np.zeros((10, 3)), np.zeros((10, 2)))
+    with pytest.raises(ValueError, match="at least 4"):
+        poisson_mesh(np.full((10, 3), np.nan), np.ones((10, 3)))
+
+
+@pytest.mark.parametrize("suffix", [".ply", ".obj"])
+def test_write_mesh_round_trip_with_normals(tmp_path: Path, suffix: str) -> None:
+    z, mask, n = _sphere_depth()
+    mask[0, 0] = False  # OBJ readers drop unreferenced vertices: keep only meshed pixels
+    albedo = np.full((SIZE, SIZE, 3), 0.25)
+    mesh = depth_to_mesh(z, mask, pixel_size=0.02, normals=n, colors=albedo)
+    path = write_mesh(mesh, tmp_path / f"mesh{suffix}")
+    back = trimesh.load(path, process=False)
+    assert len(back.faces) == len(mesh.faces)
+    assert len(back.vertices) == len(mesh.vertices)
+    # match vertices by position (OBJ readers may reorder), then compare normals
+    dist, nearest = cKDTree(mesh.vertices).query(back.vertices)
+    assert dist.max() < 1e-6 and len(np.unique(nearest)) == len(nearest)
+    np.testing.assert_allclose(back.vertex_normals, mesh.vertex_normals[nearest], atol=1e-4)
+    if suffix == ".ply":
+        np.testing.assert_array_equal(back.visual.vertex_colors[:, :3], 64)
+    assert not list(tmp_path.glob(".*"))  # no temporary file left behind
+
+
+def test_write_mesh_refuses_to_overwrite(tmp_path: Path) -> None:
+    z, mask, n = _sphere_depth()
+    mesh = depth_to_mesh(z, mask, pixel_size=0.02)
+    path = tmp_path / "mesh.ply"
+    write_mesh(mesh, path)
+    before = path.read_bytes()
+    with pytest.raises(OutputExistsError):
+        write_mesh(mesh, path)
+    assert path.read_bytes() == before
+    write_mesh(depth_to_mesh(z * 2, mask, pixel_size=0.02), path, overwrite=True)
+    assert path.read_bytes() != before
+    with pytest.raises(ValueError, match=r"\.ply or \.obj"):
+        write_mesh(mesh, tmp_path / "mesh.stl")

@@ -1,0 +1,53 @@
+"""`polarshape capture` and `polarshape calibrate` through the command line."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+import yaml
+
+from polarshape.acquisition.aravis import import_aravis
+from polarshape.acquisition.camera import CameraError
+from polarshape.cli import main
+from polarshape.io.capture import load_capture
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _aravis_or_skip() -> None:
+    try:
+        import_aravis()
+    except CameraError as exc:
+        if os.environ.get("POLARSHAPE_REQUIRE_ARAVIS") == "1":
+            pytest.fail(f"POLARSHAPE_REQUIRE_ARAVIS=1 but Aravis is unusable: {exc}")
+        pytest.skip(f"Aravis/PyGObject not installed: {exc}")
+
+
+def test_capture_with_fake_gige_camera_writes_a_valid_capture(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    _aravis_or_skip()
+    out = tmp_path / "cap"
+    assert main(["capture", str(REPO / "configs" / "sessions" / "fake_camera.yaml"), "--out", str(out)]) == 0
+    assert "capture.yaml" in capsys.readouterr().out
+    cap = load_capture(out)
+    assert cap.frames.shape == (4, 64, 64) and cap.bit_depth == 12
+    assert (cap.frames > 0).any()
+
+
+def test_capture_session_errors_are_reported(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(yaml.safe_dump({"camera": {"backend": "aravis"}, "rig": {"type": "manual"}, "lights": [{"direction": [0, 0, -1]}]}))
+    assert main(["capture", str(bad), "--out", str(tmp_path / "x")]) == 2
+    assert "camera.address" in capsys.readouterr().err
+
+
+def test_calibrate_lights_needs_exactly_one_sphere_outline(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["calibrate", "lights", str(tmp_path / "a.png")]) == 2
+    assert "--mask" in capsys.readouterr().err
+
+
+def test_calibrate_lights_missing_file_is_named(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    missing = tmp_path / "nope.png"
+    assert main(["calibrate", "lights", str(missing), "--circle", "10", "10", "5"]) == 2
+    assert "nope.png" in capsys.readouterr().err
