@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "brdf"))
-from conftest import dolp, random_geometry  # noqa: E402
+from brdf_helpers import dolp, random_geometry  # noqa: E402
 
 from polarshape.brdf import build_tables, fmbrdf_stokes  # noqa: E402
 

@@ -2,31 +2,19 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import pytest
 import yaml
 
-from polarshape.acquisition.aravis import import_aravis
-from polarshape.acquisition.camera import CameraError
 from polarshape.cli import main
 from polarshape.io.capture import load_capture
 
 REPO = Path(__file__).resolve().parents[1]
 
 
-def _aravis_or_skip() -> None:
-    try:
-        import_aravis()
-    except CameraError as exc:
-        if os.environ.get("POLARSHAPE_REQUIRE_ARAVIS") == "1":
-            pytest.fail(f"POLARSHAPE_REQUIRE_ARAVIS=1 but Aravis is unusable: {exc}")
-        pytest.skip(f"Aravis/PyGObject not installed: {exc}")
-
-
+@pytest.mark.usefixtures("require_aravis")
 def test_capture_with_fake_gige_camera_writes_a_valid_capture(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    _aravis_or_skip()
     out = tmp_path / "cap"
     assert main(["capture", str(REPO / "configs" / "sessions" / "fake_camera.yaml"), "--out", str(out)]) == 0
     assert "capture.yaml" in capsys.readouterr().out

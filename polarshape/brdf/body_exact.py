@@ -128,7 +128,7 @@ def body_integral_exact(
                 kern = torch.exp(kappa * (nv @ nl[s : s + chunk].T - 1.0))  # (Mv, chunk)
                 j = j + hv.T @ (kern @ gl[s : s + chunk])
         if prev is not None:
-            change = float((j - prev).abs().max()) / max(abs(float(j[0])), 1e-300)
+            change = float((j - prev).detach().abs().max()) / max(abs(float(j[0].detach())), 1e-300)
             if change <= rtol:
                 return j
         prev = j

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -13,8 +12,8 @@ import numpy as np
 import pytest
 import yaml
 
-from polarshape.acquisition.aravis import AravisCamera, import_aravis
-from polarshape.acquisition.camera import CameraError, Frame
+from polarshape.acquisition.aravis import AravisCamera
+from polarshape.acquisition.camera import Frame
 from polarshape.acquisition.fake_gige import REFERENCE_EXPOSURE_US, FakeGigECamera
 from polarshape.acquisition.lights import LightSpec, SimulatedLightRig
 from polarshape.acquisition.session import (
@@ -129,17 +128,8 @@ def test_written_capture_loads_with_load_capture(tmp_path: Path) -> None:
     assert capture is not None
 
 
-def _aravis_or_skip() -> None:
-    try:
-        import_aravis()
-    except CameraError as exc:
-        if os.environ.get("POLARSHAPE_REQUIRE_ARAVIS") == "1":
-            pytest.fail(f"POLARSHAPE_REQUIRE_ARAVIS=1 but Aravis is unusable: {exc}")
-        pytest.skip(f"Aravis/PyGObject not installed: {exc}")
-
-
+@pytest.mark.usefixtures("require_aravis")
 def test_session_over_gige_with_interruption(tmp_path: Path) -> None:
-    _aravis_or_skip()
     out = tmp_path / "gige"
     with FakeGigECamera(serial="PSSESSION", width=128, height=64) as fake, \
             AravisCamera(fake.address, trigger="software", packet_size=1400) as cam:
@@ -164,8 +154,8 @@ def test_session_over_gige_with_interruption(tmp_path: Path) -> None:
     assert doc["camera"]["model"] == "TRI050S-PC" and doc["camera"]["bit_depth"] == 8
 
 
+@pytest.mark.usefixtures("require_aravis")
 def test_capture_session_from_a_session_file(tmp_path: Path) -> None:
-    _aravis_or_skip()
     session = tmp_path / "session.yaml"
     session.write_text(yaml.safe_dump({
         "camera": {"backend": "fake_gige", "address": "127.0.0.1", "trigger": "software", "packet_size": 1400,

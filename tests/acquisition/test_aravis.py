@@ -7,7 +7,6 @@ missing Aravis fails the tests instead.
 from __future__ import annotations
 
 import itertools
-import os
 import subprocess
 import sys
 from collections.abc import Iterator
@@ -15,7 +14,7 @@ from collections.abc import Iterator
 import numpy as np
 import pytest
 
-from polarshape.acquisition.aravis import AravisCamera, FrameCounter, import_aravis
+from polarshape.acquisition.aravis import AravisCamera, FrameCounter
 from polarshape.acquisition.camera import PIXEL_FORMATS, Camera, CameraError
 from polarshape.acquisition.fake_gige import (
     REFERENCE_EXPOSURE_US,
@@ -28,18 +27,8 @@ FORMATS = list(PIXEL_FORMATS)
 _serials = itertools.count(1)
 
 
-def _aravis_or_skip() -> None:
-    try:
-        import_aravis()
-    except CameraError as exc:
-        if os.environ.get("POLARSHAPE_REQUIRE_ARAVIS") == "1":
-            pytest.fail(f"POLARSHAPE_REQUIRE_ARAVIS=1 but Aravis is unusable: {exc}")
-        pytest.skip(f"Aravis/PyGObject not installed: {exc}")
-
-
 @pytest.fixture
-def fake() -> Iterator[FakeGigECamera]:
-    _aravis_or_skip()
+def fake(require_aravis: None) -> Iterator[FakeGigECamera]:
     with FakeGigECamera(serial=f"PSTEST{next(_serials):04d}", width=256, height=256,
                         frame_rate_hz=200.0) as cam:
         yield cam
@@ -199,8 +188,8 @@ def test_dropped_frames_are_retried_then_reported(fake: FakeGigECamera) -> None:
         assert cam.stream_statistics()["failures"] >= 3
 
 
+@pytest.mark.usefixtures("require_aravis")
 def test_unsupported_format_and_absent_camera() -> None:
-    _aravis_or_skip()
     with FakeGigECamera(serial="PSNOFMT", pixel_formats=("PolarizeMono8", "PolarizeMono16")) as fake:
         with _open(fake) as cam:
             with pytest.raises(CameraError, match="does not offer pixel format PolarizeMono12p"):

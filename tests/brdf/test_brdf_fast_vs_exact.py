@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 import torch
-from conftest import dolp, random_geometry
+from brdf_helpers import dolp, random_geometry
 
 from polarshape.brdf import build_tables, fmbrdf_stokes
 
@@ -32,7 +32,7 @@ def compare(material, rng, n_geom, grazing_deg=(89.0, 89.9)):
     peak = float(fmbrdf_stokes(n_all, l_all, v_all, **p, tables=t)[:, 0].max())
     n, l, v = random_geometry(rng, n_geom)
     # make one geometry grazing in view and one grazing in light
-    from conftest import around
+    from brdf_helpers import around
 
     g = math.radians(float(rng.uniform(*grazing_deg)))
     n[0] = around(v[0:1], torch.tensor([g], dtype=F64), torch.tensor([0.3], dtype=F64))[0]

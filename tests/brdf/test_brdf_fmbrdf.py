@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 import torch
-from conftest import angle_diff_mod_pi, aolp, around, dolp, random_geometry
+from brdf_helpers import angle_diff_mod_pi, aolp, around, dolp, random_geometry
 
 from polarshape.brdf import build_tables, fmbrdf_stokes
 from polarshape.brdf.distribution import d_normalisation, d_shape

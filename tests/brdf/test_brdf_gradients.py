@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 import torch
-from conftest import random_geometry
+from brdf_helpers import random_geometry
 
 from polarshape.brdf import build_tables, fmbrdf_stokes
 
