@@ -36,22 +36,21 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
 from polarshape.brdf.distribution import d_shape
 from polarshape.brdf.fresnel import fresnel
 from polarshape.brdf.geometry import (
-    angle_between,
+    ShadingGeometry,
     dot,
     double_angle,
     rotate_linear_stokes,
     safe_atan2,
     safe_normalize,
-    stokes_frame,
+    shading_geometry,
     tiny,
 )
-from polarshape.brdf.quadrature import HALF_PI, gauss_legendre, theta_cutoff, theta_rule
+from polarshape.brdf.quadrature import ThetaWarp, gauss_legendre, theta_cutoff, theta_rule
 
 
 @dataclass(frozen=True)
@@ -59,7 +58,8 @@ class BodyTable:
     """W = J / (P(V) P(L)) of one material on a regular grid.
 
     Attributes:
-        values: (3, G, G, F) float64: (log W0, WQ/W0, WU/W0) over θ_V (G), θ_L (G), Δφ ∈ [0, π] (F).
+        values: (G, G, F, 3) float64, channels last: (log W0, WQ/W0, WU/W0) over θ_V (G), θ_L (G),
+            Δφ ∈ [0, π] (F).
             The polar angles are sampled uniformly in the warped coordinate of :class:`ThetaWarp`
             (dense near grazing). WQ, WU are in the frame e'_x = projection of N (see module doc);
             WU is odd in Δφ and stored for Δφ ≥ 0. The logarithm and the ratios are what vary
@@ -70,44 +70,8 @@ class BodyTable:
     """
 
     values: Tensor
-    warp: "ThetaWarp"
+    warp: ThetaWarp
     n_modes: int
-
-
-@dataclass(frozen=True)
-class ThetaWarp:
-    """Monotone map θ ∈ [0, π/2] ↦ t ∈ [−1, 1] whose uniform grid is dense near grazing.
-
-    u(θ) = θ − c·ε·asinh((π/2 − θ)/ε): spacing ≈ uniform away from grazing and ≈ 1/(1 + c) of it
-    within ε of π/2, where the body term varies on the scale of α (Fresnel transmission and the
-    horizon of the facet distribution). ε = clip(α/2, 0.005, 0.2); c puts about a third of the
-    grid in that layer.
-    """
-
-    eps: float
-    c: float
-
-    @staticmethod
-    def for_alpha(alpha: float) -> "ThetaWarp":
-        eps = min(max(0.5 * alpha, 0.005), 0.2)
-        return ThetaWarp(eps=eps, c=0.25 * math.pi / (eps * math.asinh(HALF_PI / eps)))
-
-    def _u(self, theta: Tensor | np.ndarray) -> Tensor | np.ndarray:
-        lib = torch if isinstance(theta, Tensor) else np
-        return theta - self.c * self.eps * lib.arcsinh((HALF_PI - theta) / self.eps)
-
-    def to_grid(self, theta: Tensor) -> Tensor:
-        """(...) θ -> (...) normalised grid coordinate in [−1, 1] (differentiable)."""
-        u0, u1 = float(self._u(np.float64(0.0))), float(self._u(np.float64(HALF_PI)))
-        return (self._u(theta) - u0) * (2.0 / (u1 - u0)) - 1.0
-
-    def nodes(self, n: int) -> np.ndarray:
-        """(n,) θ at the n uniformly spaced grid coordinates (θ_0 = 0, θ_{n−1} = π/2)."""
-        fine = np.linspace(0.0, HALF_PI, 200001)
-        uf = self._u(fine)
-        out = np.interp(np.linspace(uf[0], uf[-1], n), uf, fine)
-        out[0], out[-1] = 0.0, HALF_PI
-        return out
 
 
 def arc_nodes(theta: np.ndarray, theta_w: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -269,8 +233,44 @@ def build_body_table(
         ]
     )
     w0 = (j[0] / (area[:, None, None] * area[None, :, None])).clamp_min(1e-300)
-    values = torch.stack([torch.log(w0), j[1] / j[0].clamp_min(1e-300), j[2] / j[0].clamp_min(1e-300)])
-    return BodyTable(values=values, warp=warp, n_modes=n_modes)
+    values = torch.stack([torch.log(w0), j[1] / j[0].clamp_min(1e-300), j[2] / j[0].clamp_min(1e-300)], dim=-1)
+    return BodyTable(values=values.contiguous(), warp=warp, n_modes=n_modes)
+
+
+def trilinear(table: Tensor, i: Tensor, j: Tensor, k: Tensor) -> Tensor:
+    """Trilinear interpolation of a channels-last table at fractional indices.
+
+    Args:
+        table: (A, B, C, K) values.
+        i, j, k: (...) fractional indices along A, B, C (clamped to the table).
+
+    Returns:
+        (..., K), differentiable in the indices and the table. (Eight row gathers of K values:
+        about twice as fast on CPU as ``grid_sample`` on the channels-first layout.)
+    """
+    a, b, c, n_ch = table.shape
+    flat = table.reshape(-1, n_ch)
+    shape = i.shape
+    i, j, k = (x.reshape(-1) for x in (i, j, k))
+    idx, frac = [], []
+    for x, size in ((i, a), (j, b), (k, c)):
+        xc = x.clamp(0.0, size - 1.0)
+        x0 = xc.detach().floor().clamp(max=max(size - 2, 0))
+        idx.append(x0.long())
+        frac.append((xc - x0).unsqueeze(-1))
+    base = (idx[0] * b + idx[1]) * c + idx[2]
+    si, sj, sk = (b * c if a > 1 else 0), (c if b > 1 else 0), (1 if c > 1 else 0)
+
+    def at(offset: int) -> Tensor:
+        return flat.index_select(0, base + offset)
+
+    fi, fj, fk = frac
+    c00 = torch.lerp(at(0), at(sk), fk)
+    c01 = torch.lerp(at(sj), at(sj + sk), fk)
+    c10 = torch.lerp(at(si), at(si + sk), fk)
+    c11 = torch.lerp(at(si + sj), at(si + sj + sk), fk)
+    out = torch.lerp(torch.lerp(c00, c01, fj), torch.lerp(c10, c11, fj), fi)
+    return out.reshape(*shape, n_ch)
 
 
 def azimuth_frame(normal: Tensor, view: Tensor, light: Tensor, e_x: Tensor) -> tuple[Tensor, Tensor]:
@@ -296,7 +296,7 @@ def body_stokes_fast(
     view: Tensor,
     *,
     k_b: Tensor | float,
-    frame: tuple[Tensor, Tensor] | None = None,
+    geometry: ShadingGeometry | None = None,
 ) -> Tensor:
     """Body-reflection Stokes vector (spec §7) from a :class:`BodyTable`.
 
@@ -304,30 +304,27 @@ def body_stokes_fast(
         table: built by :func:`build_body_table` for the material.
         normal, light, view: (..., 3) unit vectors in the camera frame (broadcastable).
         k_b: body albedo, float or tensor broadcastable to (...) (e.g. per pixel).
-        frame: the pixel Stokes frame (e_x, e_y); computed from ``view`` when omitted.
+        geometry: :func:`~polarshape.brdf.geometry.shading_geometry` of (N, L, V) if already computed.
 
     Returns:
         (..., 3) Stokes (s0, s1, s2) for unit irradiance; zero unless N·L > 0 and N·V > 0.
     """
     normal, light, view = torch.broadcast_tensors(normal, light, view)
     dt = normal.dtype
-    e_x, e_y = stokes_frame(view) if frame is None else frame
-    cos_l = dot(normal, light)
-    cos_v = dot(normal, view)
-    front = (cos_l > 0) & (cos_v > 0)
-    theta_v = angle_between(normal, view).clamp(max=HALF_PI)
-    theta_l = angle_between(normal, light).clamp(max=HALF_PI)
+    geo = shading_geometry(normal, light, view) if geometry is None else geometry
+    e_x, e_y, cos_l, front, theta_l, theta_v = geo.e_x, geo.e_y, geo.n_dot_l, geo.front, geo.theta_l, geo.theta_v
     x_ref, y_ref = azimuth_frame(normal, view, light, e_x)
     dphi = safe_atan2(dot(light, y_ref), dot(light, x_ref))
 
-    shape = normal.shape[:-1]
-    grid = torch.stack(
-        [dphi.abs() * (2.0 / math.pi) - 1.0, table.warp.to_grid(theta_l), table.warp.to_grid(theta_v)], dim=-1
-    ).reshape(1, -1, 1, 1, 3)
-    w = F.grid_sample(table.values.to(dt).unsqueeze(0), grid, mode="bilinear", padding_mode="border", align_corners=True)
-    w = w.reshape(3, *shape)
-    w0 = torch.exp(w[0])
-    wq, wu = w0 * w[1], w0 * w[2] * torch.where(dphi < 0, -1.0, 1.0).to(dt)
+    g, f = table.values.shape[0], table.values.shape[2]
+    w = trilinear(
+        table.values.to(dt),  # (G_V, G_L, F, 3)
+        (table.warp.to_grid(theta_v) + 1.0) * (0.5 * (g - 1)),
+        (table.warp.to_grid(theta_l) + 1.0) * (0.5 * (g - 1)),
+        dphi.abs() * ((f - 1) / math.pi),
+    )  # (..., 3)
+    w0 = torch.exp(w[..., 0])
+    wq, wu = w0 * w[..., 1], w0 * w[..., 2] * torch.where(dphi < 0, -1.0, 1.0).to(dt)
 
     # local polarisation frame e'_x = sin θ_V N − cos θ_V x_ref (= normalise(N − (N·V)V))
     e_xl = torch.sin(theta_v).unsqueeze(-1) * normal - torch.cos(theta_v).unsqueeze(-1) * x_ref

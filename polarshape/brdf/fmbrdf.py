@@ -26,7 +26,7 @@ from torch import Tensor
 from polarshape.brdf.body_exact import body_integral_exact
 from polarshape.brdf.body_fast import BodyTable, body_stokes_fast, build_body_table
 from polarshape.brdf.distribution import d_normalisation
-from polarshape.brdf.geometry import angle_between, dot, safe_normalize, stokes_frame
+from polarshape.brdf.geometry import angle_between, dot, safe_normalize, shading_geometry, stokes_frame
 from polarshape.brdf.smith import SmithTable, build_smith_table, projected_area_exact
 from polarshape.brdf.surface import surface_stokes
 
@@ -83,7 +83,7 @@ class FMBRDFTables:
 
     def to(self, device: torch.device | str) -> "FMBRDFTables":
         """The same tables on another device."""
-        s = SmithTable(self.smith.grid.to(device), self.smith.excess.to(device))
+        s = SmithTable(self.smith.warp, self.smith.excess.to(device))
         b = BodyTable(self.body.values.to(device), self.body.warp, self.body.n_modes)
         return FMBRDFTables(*(t.to(device) for t in (self.ior, self.alpha, self.beta, self.kappa, self.c)), smith=s, body=b)
 
@@ -188,12 +188,12 @@ def fmbrdf_stokes(
         return _fmbrdf_stokes_exact(n, l, v, ior=ior, k_s=k_s, k_b=k_b, alpha=alpha, beta=beta, kappa=kappa)
     if tables is None:
         tables = build_tables(ior=ior, alpha=alpha, beta=beta, kappa=kappa, device=n.device)
-    frame = stokes_frame(v)
+    geo = shading_geometry(n, l, v)  # shared by both terms
     surf = surface_stokes(
         n, l, v, ior=tables.ior, k_s=k_s, alpha=tables.alpha, beta=tables.beta, c=tables.c,
-        projected_area=tables.smith.projected_area, frame=frame,
+        projected_area=tables.smith.projected_area, geometry=geo,
     )
-    body = body_stokes_fast(tables.body, n, l, v, k_b=k_b, frame=frame)
+    body = body_stokes_fast(tables.body, n, l, v, k_b=k_b, geometry=geo)
     return surf + body
 
 
@@ -219,8 +219,7 @@ def _fmbrdf_stokes_exact(n: Tensor, l: Tensor, v: Tensor, *, ior: Param, k_s: Pa
         def area(theta: Tensor, ai: Tensor = a[i], bi: Tensor = b[i], ci: Tensor = c) -> Tensor:
             return projected_area_exact(theta, ai, bi, ci)
 
-        frame = (e_x[i], e_y[i])
-        surf = surface_stokes(ni, li, vi, ior=mu[i], k_s=ks[i], alpha=a[i], beta=b[i], c=c, projected_area=area, frame=frame)
+        surf = surface_stokes(ni, li, vi, ior=mu[i], k_s=ks[i], alpha=a[i], beta=b[i], c=c, projected_area=area)
         j = body_integral_exact(ni, li, vi, e_x[i], e_y[i], ior=mu[i], alpha=a[i], beta=b[i], kappa=k[i], c=c)
         theta_l = angle_between(ni, li)
         theta_v = angle_between(ni, vi)

@@ -12,8 +12,10 @@ from __future__ import annotations
 
 import functools
 import math
+from dataclasses import dataclass
 
 import numpy as np
+import torch
 
 HALF_PI = 0.5 * math.pi
 
@@ -84,3 +86,41 @@ def theta_rule(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Nodes and weights in θ for ∫₀^{π/2} f(θ) D(θ) … dθ (see :func:`theta_breaks`)."""
     return composite_rule(theta_breaks(alpha, beta, max_width=max_width, extra=extra), n)
+
+
+@dataclass(frozen=True)
+class ThetaWarp:
+    """Monotone map θ ∈ [0, π/2] ↦ t ∈ [−1, 1] whose uniform grid is dense near grazing.
+
+    u(θ) = θ − c·ε·asinh((π/2 − θ)/ε): spacing ≈ uniform away from grazing and ≈ 1/(1 + c) of it
+    within ε of π/2, where the body term varies on the scale of α (Fresnel transmission and the
+    horizon of the facet distribution). ε = clip(α/2, 0.005, 0.2); c puts about a third of the
+    grid in that layer (by default).
+    """
+
+    eps: float
+    c: float
+
+    @staticmethod
+    def for_alpha(alpha: float, *, eps_factor: float = 0.5, layer: float = 0.25 * math.pi) -> "ThetaWarp":
+        """ε = clip(eps_factor·α, 0.0025, 0.2); ``layer`` = extra grid range given to the layer
+        (0.25π: about a third of the grid)."""
+        eps = min(max(eps_factor * alpha, 0.0025), 0.2)
+        return ThetaWarp(eps=eps, c=layer / (eps * math.asinh(HALF_PI / eps)))
+
+    def _u(self, theta: "torch.Tensor | np.ndarray") -> "torch.Tensor | np.ndarray":
+        lib = torch if isinstance(theta, torch.Tensor) else np
+        return theta - self.c * self.eps * lib.arcsinh((HALF_PI - theta) / self.eps)
+
+    def to_grid(self, theta: "torch.Tensor") -> "torch.Tensor":
+        """(...) θ -> (...) normalised grid coordinate in [−1, 1] (differentiable)."""
+        u0, u1 = float(self._u(np.float64(0.0))), float(self._u(np.float64(HALF_PI)))
+        return (self._u(theta) - u0) * (2.0 / (u1 - u0)) - 1.0
+
+    def nodes(self, n: int) -> np.ndarray:
+        """(n,) θ at the n uniformly spaced grid coordinates (θ_0 = 0, θ_{n−1} = π/2)."""
+        fine = np.linspace(0.0, HALF_PI, 200001)
+        uf = self._u(fine)
+        out = np.interp(np.linspace(uf[0], uf[-1], n), uf, fine)
+        out[0], out[-1] = 0.0, HALF_PI
+        return out

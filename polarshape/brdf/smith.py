@@ -19,13 +19,12 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import numpy as np
 import torch
 from torch import Tensor
 
 from polarshape.brdf.distribution import d_shape
 from polarshape.brdf.geometry import tiny
-from polarshape.brdf.quadrature import HALF_PI, composite_rule, theta_breaks
+from polarshape.brdf.quadrature import HALF_PI, ThetaWarp, composite_rule, theta_breaks
 
 
 def clipped_cos_azimuthal(a: Tensor, b: Tensor) -> Tensor:
@@ -77,44 +76,40 @@ def projected_area_exact(
     return torch.stack(out).reshape(theta_w.shape)
 
 
-def smith_grid(alpha: float, n_uniform: int = 129) -> np.ndarray:
-    """θ grid on [0, π/2]: uniform plus geometric refinement within a few α of grazing."""
-    geo = HALF_PI - alpha * 2.0 ** (np.arange(-80, 49) / 8.0)
-    pts = np.concatenate([np.linspace(0.0, HALF_PI, n_uniform), geo[(geo > 0) & (geo < HALF_PI)]])
-    return np.unique(pts)
+def smith_warp(alpha: float) -> ThetaWarp:
+    """θ ↦ grid coordinate for the Smith table: uniform away from grazing, refined within ~α/4 of it."""
+    return ThetaWarp.for_alpha(alpha, eps_factor=0.25, layer=0.5 * math.pi)
 
 
-def interp1d(x: Tensor, xp: Tensor, fp: Tensor) -> Tensor:
-    """Piecewise-linear interpolation of (xp, fp) at x (clamped to the grid), differentiable in x and fp.
-
-    Args:
-        x: (...) query points.
-        xp: (G,) increasing grid.
-        fp: (G,) values.
-    """
-    xc = x.clamp(xp[0], xp[-1])
-    idx = torch.searchsorted(xp, xc.detach().contiguous(), right=True).clamp(1, xp.numel() - 1)
-    x0 = xp[idx - 1]
-    x1 = xp[idx]
-    t = (xc - x0) / (x1 - x0)
-    return fp[idx - 1] * (1.0 - t) + fp[idx] * t
+def interp_uniform(t: Tensor, fp: Tensor) -> Tensor:
+    """Linear interpolation of samples fp (G,) at fractional indices t (...) (clamped)."""
+    g = fp.numel()
+    tc = t.clamp(0.0, g - 1.0)
+    i0 = tc.detach().floor().clamp(max=g - 2)
+    idx = i0.long().reshape(-1)
+    lo = fp.index_select(0, idx).reshape(t.shape)
+    hi = fp.index_select(0, idx + 1).reshape(t.shape)
+    return torch.lerp(lo, hi, tc - i0)
 
 
 @dataclass(frozen=True)
 class SmithTable:
-    """P(θ) tabulated for one (α, β): ``grid`` (G,) rad and ``excess`` (G,) = P(θ) − cos θ ≥ 0.
+    """P(θ) tabulated for one (α, β) at the G nodes of ``warp``: ``excess`` (G,) = P(θ) − cos θ ≥ 0.
 
     The excess (the facets a clipped view still sees beyond the macro-surface's cos θ) is what is
     interpolated; cos θ is added back exactly, so the table is exact wherever no facet is hidden.
+    The grid is uniform in the warped coordinate (dense near grazing), so a lookup is an index
+    computation, not a search.
     """
 
-    grid: Tensor
+    warp: ThetaWarp
     excess: Tensor
 
     def projected_area(self, theta: Tensor) -> Tensor:
         """Interpolated P(θ) for (...) θ in [0, π/2] (in θ's dtype)."""
         t = theta.clamp(0.0, HALF_PI)
-        return torch.cos(t) + interp1d(t, self.grid.to(theta.dtype), self.excess.to(theta.dtype))
+        idx = (self.warp.to_grid(t) + 1.0) * (0.5 * (self.excess.numel() - 1))
+        return torch.cos(t) + interp_uniform(idx, self.excess.to(theta.dtype))
 
     def g1(self, theta: Tensor) -> Tensor:
         """Smith G1(θ) = cos θ / P(θ) for (...) θ (0 beyond π/2)."""
@@ -122,20 +117,21 @@ class SmithTable:
 
 
 def build_smith_table(
-    alpha: Tensor, beta: Tensor, c: Tensor, *, n_uniform: int = 257, n: int = 8, layout: tuple[float, float] | None = None
+    alpha: Tensor, beta: Tensor, c: Tensor, *, n_grid: int = 513, n: int = 8, layout: tuple[float, float] | None = None
 ) -> SmithTable:
     """Tabulate P(θ) for the current α, β (differentiable in α, β, c through the values).
 
     Args:
         alpha, beta, c: 0-dim float64 tensors.
-        n_uniform: uniform grid points on [0, π/2] (plus refinement near grazing).
+        n_grid: grid points on [0, π/2] (uniform in the warped coordinate of :func:`smith_warp`).
         n: Gauss–Legendre points per θ_m panel.
         layout: (α, β) at which to place grid and nodes (default: the values themselves).
     """
     la, lb = layout if layout is not None else (float(alpha.detach()), float(beta.detach()))
-    grid = torch.as_tensor(smith_grid(la, n_uniform), dtype=alpha.dtype, device=alpha.device)
+    warp = smith_warp(la)
+    grid = torch.as_tensor(warp.nodes(n_grid), dtype=alpha.dtype, device=alpha.device)
     nodes, weights = composite_rule(theta_breaks(la, lb, max_width=0.05), n)
     th = torch.as_tensor(nodes, dtype=alpha.dtype, device=alpha.device)
     w = torch.as_tensor(weights, dtype=alpha.dtype, device=alpha.device)
     area = _projected_area_on_nodes(grid, th, w, alpha, beta, c)
-    return SmithTable(grid=grid, excess=area - torch.cos(grid))
+    return SmithTable(warp=warp, excess=area - torch.cos(grid))

@@ -15,7 +15,7 @@ from torch import Tensor
 
 from polarshape.brdf.distribution import d_shape
 from polarshape.brdf.fresnel import fresnel
-from polarshape.brdf.geometry import angle_between, dot, double_angle, safe_normalize, stokes_frame
+from polarshape.brdf.geometry import ShadingGeometry, angle_between, dot, double_angle, safe_normalize, shading_geometry
 
 
 def surface_stokes(
@@ -29,7 +29,7 @@ def surface_stokes(
     beta: Tensor,
     c: Tensor,
     projected_area: Callable[[Tensor], Tensor],
-    frame: tuple[Tensor, Tensor] | None = None,
+    geometry: ShadingGeometry | None = None,
 ) -> Tensor:
     """Surface-reflection Stokes vector (spec §6) for unit irradiance at normal incidence.
 
@@ -38,20 +38,16 @@ def surface_stokes(
         ior: μ; k_s: surface albedo (broadcastable to (...)).
         alpha, beta: D's parameters (0-dim); c: D's normalisation (eq. 5).
         projected_area: θ ↦ P(θ) of spec §4 (tabulated or exact).
-        frame: the pixel Stokes frame (e_x, e_y), computed from ``view`` when omitted.
+        geometry: :func:`~polarshape.brdf.geometry.shading_geometry` of (N, L, V) if already computed.
 
     Returns:
         (..., 3) Stokes (s0, s1, s2) in the pixel frame; zero unless N·L > 0 and N·V > 0.
     """
     normal, light, view = torch.broadcast_tensors(normal, light, view)
-    e_x, e_y = stokes_frame(view) if frame is None else frame
-    n_dot_l = dot(normal, light)
-    n_dot_v = dot(normal, view)
-    front = (n_dot_l > 0) & (n_dot_v > 0)
+    geo = shading_geometry(normal, light, view) if geometry is None else geometry
+    e_x, e_y, n_dot_l, front, theta_l, theta_v = geo.e_x, geo.e_y, geo.n_dot_l, geo.front, geo.theta_l, geo.theta_v
     half = safe_normalize(light + view)  # H (spec §6)
     theta_h = angle_between(normal, half)
-    theta_l = angle_between(normal, light).clamp(max=torch.pi / 2)
-    theta_v = angle_between(normal, view).clamp(max=torch.pi / 2)
     d = c.to(normal.dtype) * d_shape(theta_h, alpha.to(normal.dtype), beta.to(normal.dtype))  # eq. 2, 5
     # D G1(L) G1(V) / (4 N·V) = D (N·L) / (4 P(L) P(V))  (spec §4, §6)
     radiance = d * n_dot_l.clamp_min(0.0) / (4.0 * projected_area(theta_l) * projected_area(theta_v))
