@@ -6,7 +6,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 PIP := $(PY) -m pip
 STAMP := $(VENV)/.polarshape-installed
-OUT ?= results/demo
+OUT ?= results/default
 
 .PHONY: run test test-fast bench setup clean-venv
 
@@ -25,7 +25,7 @@ $(STAMP): pyproject.toml scripts/install-system-deps.sh | $(PY)
 setup: $(STAMP)
 
 run: $(STAMP)
-	$(VENV)/bin/polarshape demo --out $(OUT) --overwrite
+	$(VENV)/bin/polarshape run configs/default.yaml --out $(OUT) --overwrite
 
 test: $(STAMP)
 	$(PY) -m pytest tests -q

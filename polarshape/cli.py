@@ -144,7 +144,9 @@ def build_parser() -> argparse.ArgumentParser:
     insp.set_defaults(handler=_cmd_inspect)
 
     from polarshape.cli_acquisition import add_parsers as add_acquisition_parsers
+    from polarshape.cli_run import add_parsers as add_run_parsers
 
+    add_run_parsers(sub)
     add_acquisition_parsers(sub)
     return parser
 

@@ -207,3 +207,36 @@ def test_run_refuses_bad_lights_and_missing_intrinsics_before_capturing(tmp_path
         run_capture_session(cam, SimulatedLightRig(cam, SPECS), tmp_path / "b",
                             camera_info={"projection": "perspective"})
     assert cam.captured == [] and not (tmp_path / "a").exists()
+
+
+@pytest.mark.usefixtures("require_aravis")
+def test_fake_camera_capture_is_accepted_by_polarshape_run(tmp_path: Path) -> None:
+    """`polarshape capture` (fake GigE camera over loopback + simulated rig) → `polarshape run`."""
+    from polarshape.cli import main
+
+    session = tmp_path / "session.yaml"
+    session.write_text(yaml.safe_dump({
+        "camera": {"backend": "fake_gige", "address": "127.0.0.1", "trigger": "software", "packet_size": 1400,
+                   "pixel_format": "PolarizeMono12p", "exposure_us": 5000, "roi": [0, 0, 64, 64],
+                   "projection": "orthographic"},
+        "rig": {"type": "simulated"},
+        "lights": [{"direction": [0.259, 0.0, -0.966]}, {"direction": [0.0, 0.259, -0.966]},
+                   {"direction": [-0.259, 0.0, -0.966]}, {"direction": [0.0, -0.259, -0.966]}],
+        "capture": {"frames_per_light": 2},
+    }))
+    assert main(["capture", str(session), "--out", str(tmp_path / "capture")]) == 0
+    (tmp_path / "run.yaml").write_text(yaml.safe_dump({
+        "format": "polarshape-run/1",
+        "input": {"type": "capture", "path": "capture"},
+        "recovery": {"model": "lambertian"},
+        "report": {"enabled": False},
+        "progress": False,
+    }))
+    assert main(["run", str(tmp_path / "run.yaml"), "--out", str(tmp_path / "result")]) == 0
+    normals = np.load(tmp_path / "result" / "normals.npy")
+    assert normals.shape == (32, 32, 3)  # super-pixels of the 64 × 64 ROI
+    inside = np.isfinite(normals).all(-1)
+    assert inside.sum() > 0 and np.allclose(np.linalg.norm(normals[inside], axis=-1), 1.0, atol=1e-4)
+    params = json.loads((tmp_path / "result" / "params.json").read_text())
+    assert params["capture"]["lights"] == 4 and params["capture"]["input_type"] == "capture"
+    assert (tmp_path / "result" / "mesh.ply").is_file()

@@ -1,0 +1,557 @@
+"""Joint recovery of per-pixel normals and FMBRDF reflectance from K polarimetric images (spec §9).
+
+Pipeline of :func:`recover_capture` (each stage timed in ``RecoveryResult.timings``):
+
+1. **preprocess** — super-pixel Stokes, dark/saturated observation masks, lights, view directions
+   (:mod:`polarshape.recover.preprocess`), cropped to the mask's bounding box.
+2. **init** — robust Lambertian photometric stereo on s0 (shadows and highlights trimmed):
+   the initial normals (and the whole answer for ``model="lambertian"``).
+3. **coarse-to-fine alternation** — on a pyramid (2×2 averaging) whose coarsest level holds at
+   most ``4·subsample_pixels`` pixels, alternate
+   a. *global parameters* (μ, α, β, [κ]; k_s and per-pixel k_b in closed form) by L-BFGS on a random
+      subsample of ``subsample_pixels`` pixels (:func:`polarshape.recover.reflectometry.fit_reflectance`);
+   b. *normals*: per-pixel Levenberg–Marquardt, 2 DoF (tangent-plane step, renormalised), Jacobian by
+      forward differences of the full model (k_b re-solved in closed form inside the residual:
+      variable projection), Huber loss by iteratively reweighted least squares, per-pixel damping
+      and acceptance; pixels whose step stayed below 1e-4 rad for two iterations are frozen
+      (active set), so later iterations only touch the pixels that still move.
+   The alternation stops when the loss improved by less than 1e-4 (relative) summed over the last
+   two outer iterations (a window, not one step) or after ``max_outer_iterations``.
+   Finer levels start from the upsampled normals and run step b only.
+4. **κ** — with ``fit_kappa=None`` κ is fitted once at the end of the coarse level; if it lowers the
+   loss by < 1 % it is reset to 0 (the separable fast path) and the skip recorded.
+
+Robust loss: Huber on channel-weighted Stokes residuals (see :mod:`polarshape.recover.reflectometry`),
+δ = 3 × the robust (MAD) residual σ of the initial fit, floored at 4 quantisation steps.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass, field
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+from tqdm.auto import tqdm
+
+from polarshape.brdf.fmbrdf import FMBRDFTables, build_tables
+from polarshape.io.capture import Capture
+from polarshape.recover.photometric import robust_lambertian_ps
+from polarshape.recover.preprocess import RecoveryInputs, crop_inputs, preprocess_capture
+from polarshape.recover.reflectometry import (
+    GlobalParams,
+    Observations,
+    _channel_weights,
+    fit_reflectance,
+    objective,
+    huber,
+    render_parts,
+    solve_albedos,
+)
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["RecoveryConfig", "RecoveryResult", "recover_capture", "recover_inputs", "angular_error_deg"]
+
+_MODELS = ("fmbrdf", "lambertian", "auto")
+
+
+@dataclass
+class RecoveryConfig:
+    """Options of :func:`recover_capture` (see the module docstring for the stages)."""
+
+    model: str = "fmbrdf"  # "fmbrdf" | "lambertian" (intensity-only PS baseline) | "auto" (pick the simplest that explains the data)
+    per_pixel_albedo: bool = True
+    fit_kappa: bool | None = None  # None = decide from the data (skip κ when it adds nothing)
+    max_outer_iterations: int = 20
+    subsample_pixels: int = 4096  # pixels used for the global parameters
+    coarse_to_fine: bool = True
+    demosaic: str = "bilinear"  # "bilinear" | "superpixel" (see polarshape.recover.preprocess)
+    sample_at: str = "centre"  # where in each 2×2 block: "centre" | "top_left" | "top_right" | ...
+    device: str = "cpu"
+    dtype: torch.dtype = torch.float32
+    seed: int = 0
+    progress: bool = False  # tqdm bars
+
+
+@dataclass
+class RecoveryResult:
+    """Output of :func:`recover_capture`; (H, W) is the capture's super-pixel grid."""
+
+    normals: Tensor  # (H, W, 3) camera frame, NaN outside mask
+    albedo: Tensor | None  # (H, W) body albedo k_b (NaN outside mask) or None
+    params: dict[str, float]  # ior, k_s, k_b (global/mean), alpha, beta, kappa, r_k ...
+    model: str
+    mask: Tensor  # (H, W) bool
+    rendered: Tensor | None  # (K, 3, H, W) Stokes rendered with the result (for the report)
+    observed: Tensor  # (K, 3, H, W) observed Stokes
+    history: list[dict] = field(default_factory=list)  # per outer iteration: loss, seconds, stage
+    timings: dict[str, float] = field(default_factory=dict)  # seconds per stage
+    skipped: list[str] = field(default_factory=list)  # what was skipped and why (human-readable)
+
+
+def angular_error_deg(a: Tensor, b: Tensor) -> Tensor:
+    """Angle between unit vectors (..., 3) in degrees, via atan2(|a×b|, a·b)."""
+    a, b = a.to(torch.float64), b.to(torch.float64)
+    return torch.rad2deg(torch.atan2(torch.linalg.cross(a, b).norm(dim=-1), (a * b).sum(-1)))
+
+
+# --------------------------------------------------------------------------------------------
+# Helpers
+# --------------------------------------------------------------------------------------------
+
+
+def _check_config(config: RecoveryConfig) -> None:
+    if config.model not in _MODELS:
+        raise ValueError(f"RecoveryConfig.model must be one of {_MODELS}; got {config.model!r}")
+    if config.max_outer_iterations < 1:
+        raise ValueError(f"RecoveryConfig.max_outer_iterations must be ≥ 1; got {config.max_outer_iterations}")
+    if config.subsample_pixels < 16:
+        raise ValueError(f"RecoveryConfig.subsample_pixels must be ≥ 16; got {config.subsample_pixels}")
+    if not config.dtype.is_floating_point:
+        raise ValueError(f"RecoveryConfig.dtype must be a floating-point torch dtype; got {config.dtype}")
+
+
+def _flatten(inputs: RecoveryInputs, pixels: Tensor) -> Observations:
+    """Observations of the pixels where ``pixels`` (H, W) is True, row-major."""
+    stokes = inputs.stokes.permute(2, 3, 0, 1)[pixels]  # (P, K, 3)
+    weight = inputs.valid.permute(1, 2, 0)[pixels].to(stokes.dtype)  # (P, K)
+    lights = inputs.lights if inputs.lights.ndim == 2 else inputs.lights.permute(1, 2, 0, 3)[pixels]
+    irr = inputs.irradiance if inputs.irradiance.ndim == 1 else inputs.irradiance.permute(1, 2, 0)[pixels]
+    return Observations(stokes, weight, lights, irr, inputs.view[pixels])
+
+
+def _downsample(inputs: RecoveryInputs) -> RecoveryInputs:
+    """Half resolution: 2×2 means of Stokes over valid observations; a pixel is in the mask when all
+    four are; an observation is valid when all four are."""
+    h, w = inputs.shape
+    h2, w2 = h // 2, w // 2
+    st = inputs.stokes[..., : 2 * h2, : 2 * w2]
+    va = inputs.valid[:, : 2 * h2, : 2 * w2]
+    m = inputs.mask[: 2 * h2, : 2 * w2]
+    valid = F.avg_pool2d(va.to(st.dtype).unsqueeze(1), 2).squeeze(1) > 0.999  # (K, h2, w2)
+    mask = F.avg_pool2d(m.to(st.dtype)[None, None], 2)[0, 0] > 0.999
+    stokes = F.avg_pool2d(st, 2)
+    sat = F.max_pool2d(inputs.saturated[:, : 2 * h2, : 2 * w2].to(st.dtype).unsqueeze(1), 2).squeeze(1) > 0
+    view = F.avg_pool2d(inputs.view[: 2 * h2, : 2 * w2].permute(2, 0, 1).unsqueeze(0), 2)[0].permute(1, 2, 0)
+    view = view / view.norm(dim=-1, keepdim=True)
+    lights, irr = inputs.lights, inputs.irradiance
+    if lights.ndim == 4:
+        lights = F.avg_pool2d(lights[:, : 2 * h2, : 2 * w2].permute(0, 3, 1, 2), 2).permute(0, 2, 3, 1)
+        lights = lights / lights.norm(dim=-1, keepdim=True)
+    if irr.ndim == 3:
+        irr = F.avg_pool2d(irr[:, : 2 * h2, : 2 * w2].unsqueeze(1), 2).squeeze(1)
+    return RecoveryInputs(stokes, valid & mask, sat, mask, lights, irr, view, inputs.noise_std / 2,
+                          inputs.has_polarisation, inputs.offset)
+
+
+def _tangent_basis(n: Tensor) -> tuple[Tensor, Tensor]:
+    """Two unit vectors (P, 3) orthogonal to n (P, 3) and to each other."""
+    ref = torch.zeros_like(n)
+    use_x = n[:, 0].abs() < 0.9
+    ref[:, 0] = use_x.to(n.dtype)
+    ref[:, 1] = (~use_x).to(n.dtype)
+    t1 = torch.linalg.cross(n, ref)
+    t1 = t1 / t1.norm(dim=-1, keepdim=True)
+    t2 = torch.linalg.cross(n, t1)
+    return t1, t2
+
+
+class _NormalProblem:
+    """Per-pixel residuals r(N) (P, K, 3) with k_b solved in closed form (variable projection)."""
+
+    def __init__(self, tables: FMBRDFTables, obs: Observations, k_s: float, per_pixel: bool, k_b_global: float,
+                 polarised: bool, delta: float) -> None:
+        self.tables, self.obs, self.per_pixel, self.delta = tables, obs, per_pixel, delta
+        self.k_s = torch.tensor(k_s, dtype=obs.stokes.dtype, device=obs.stokes.device)
+        self.k_b_global = k_b_global
+        self.cw = _channel_weights(obs.stokes, polarised).sqrt()  # (3,)
+        self.polarised = polarised
+
+    def residual(self, normals: Tensor, obs: Observations) -> tuple[Tensor, Tensor]:
+        """Weighted residual (P, K, 3) and k_b (P,) for normals (P, 3) of the pixels in ``obs``."""
+        surf, body = render_parts(self.tables, normals, obs)
+        if self.per_pixel:
+            _, k_b = solve_albedos(surf, body, obs, per_pixel=True, polarised=self.polarised, k_s=self.k_s)
+        else:
+            k_b = torch.full((normals.shape[0],), self.k_b_global, dtype=surf.dtype, device=surf.device)
+        r = (obs.stokes - self.k_s * surf - k_b[:, None, None] * body) * self.cw
+        return r * obs.weight.sqrt().unsqueeze(-1), k_b
+
+    def loss(self, r: Tensor) -> Tensor:
+        """Per-pixel Huber loss (P,)."""
+        return huber(r, self.delta).sum((1, 2))
+
+
+def _refine_normals(
+    problem: _NormalProblem, normals: Tensor, obs: Observations, *, max_iter: int, step_h: float = 2e-3,
+    max_step: float = 0.25,
+) -> tuple[Tensor, Tensor, Tensor, int]:
+    """Per-pixel Levenberg–Marquardt on the normals (P, 3); returns normals, k_b, per-pixel loss, iterations."""
+    p = normals.shape[0]
+    dt, dev = normals.dtype, normals.device
+    with torch.no_grad():
+        r, k_b = problem.residual(normals, obs)
+        loss = problem.loss(r)
+        lam = torch.full((p,), 1e-3, dtype=dt, device=dev)
+        small = torch.zeros(p, dtype=torch.int64, device=dev)
+        active = torch.ones(p, dtype=torch.bool, device=dev)
+        it = 0
+        for it in range(1, max_iter + 1):
+            idx = torch.nonzero(active).flatten()
+            if idx.numel() == 0:
+                break
+            sub = obs.select(idx)
+            n = normals[idx]
+            r0 = r[idx].reshape(idx.numel(), -1)  # (A, M)
+            t1, t2 = _tangent_basis(n)
+            r1, _ = problem.residual(_unit(n + step_h * t1), sub)
+            r2, _ = problem.residual(_unit(n + step_h * t2), sub)
+            jac = torch.stack([(r1.reshape(r0.shape) - r0) / step_h, (r2.reshape(r0.shape) - r0) / step_h], -1)  # (A, M, 2)
+            a = r0.abs()
+            irls = torch.where(a <= problem.delta, torch.ones_like(a), problem.delta / a.clamp_min(1e-30))  # Huber IRLS
+            jw = jac * irls.unsqueeze(-1)
+            h = jw.transpose(1, 2) @ jac  # (A, 2, 2)
+            g = (jw * r0.unsqueeze(-1)).sum(1)  # (A, 2)
+            diag = torch.diagonal(h, dim1=1, dim2=2)
+            damp = h + torch.diag_embed(lam[idx, None] * (diag + 1e-12))
+            det = damp[:, 0, 0] * damp[:, 1, 1] - damp[:, 0, 1] * damp[:, 1, 0]
+            ok = det.abs() > 1e-30
+            safe = torch.where(ok, det, torch.ones_like(det))
+            d0 = -(damp[:, 1, 1] * g[:, 0] - damp[:, 0, 1] * g[:, 1]) / safe
+            d1 = -(-damp[:, 1, 0] * g[:, 0] + damp[:, 0, 0] * g[:, 1]) / safe
+            step = torch.stack([d0, d1], -1)
+            step = torch.where(ok[:, None], step, torch.zeros_like(step))
+            norm = step.norm(dim=-1)
+            step = step * (max_step / norm.clamp_min(max_step)).unsqueeze(-1)
+            trial = _unit(n + step[:, :1] * t1 + step[:, 1:] * t2)
+            facing = (trial * sub.view).sum(-1) > 0
+            rt, kbt = problem.residual(trial, sub)
+            lt = problem.loss(rt)
+            accept = facing & (lt < loss[idx]) & torch.isfinite(lt)
+            ai = idx[accept]
+            normals[ai] = trial[accept]
+            r[ai] = rt[accept]
+            k_b[ai] = kbt[accept]
+            rel = (loss[idx] - lt) / loss[idx].clamp_min(1e-30)
+            loss[ai] = lt[accept]
+            lam[idx] = torch.where(accept, (lam[idx] / 3).clamp_min(1e-7), (lam[idx] * 4).clamp_max(1e7))
+            tiny_step = (step.norm(dim=-1) < 1e-4) | (accept & (rel < 1e-7)) | (~accept & (lam[idx] > 1e6))
+            small[idx] = torch.where(tiny_step, small[idx] + 1, torch.zeros_like(small[idx]))
+            active = small < 2
+    return normals, k_b, loss, it
+
+
+def _unit(x: Tensor) -> Tensor:
+    return x / x.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+
+
+def _subsample(p: int, n: int, seed: int, device: torch.device) -> Tensor:
+    if p <= n:
+        return torch.arange(p, device=device)
+    gen = torch.Generator().manual_seed(seed)
+    return torch.randperm(p, generator=gen)[:n].sort().values.to(device)
+
+
+def _huber_delta(obs: Observations, noise_std: float, residual: Tensor | None = None) -> float:
+    floor = 4.0 * noise_std
+    if residual is None:
+        return max(floor, 0.01)
+    v = residual[obs.weight > 0].abs().flatten()
+    if v.numel() == 0:
+        return floor
+    sigma = float(v.median()) * 1.4826
+    return max(3.0 * sigma, floor)
+
+
+# --------------------------------------------------------------------------------------------
+# Stages
+# --------------------------------------------------------------------------------------------
+
+
+def _lambertian(inputs: RecoveryInputs, pixels: Tensor) -> tuple[Tensor, Tensor]:
+    """Robust Lambertian PS on s0: normals (H, W, 3), albedo (H, W) (pixels outside: N = V, 0)."""
+    s0 = inputs.stokes[:, 0]  # (K, H, W)
+    k = s0.shape[0]
+    if k < 3:
+        raise ValueError(
+            f"capture: {k} light(s); recovery needs at least 3 non-coplanar lights for the initial normals"
+        )
+    obs_mask = inputs.valid & pixels.unsqueeze(0)
+    # lights (K, 3) or (K, H, W, 3) and irradiance (K,) or (K, H, W) are the shapes robust PS takes
+    res = robust_lambertian_ps(
+        s0, inputs.lights, inputs.irradiance, obs_mask, view_dirs=inputs.view, saturation=None, noise_std=inputs.noise_std,
+    )
+    return res.normals, res.albedo
+
+
+@dataclass
+class _State:
+    params: GlobalParams
+    normals: Tensor  # (H, W, 3) at the current level
+    k_b: Tensor  # (H, W)
+
+
+def _fit_level(
+    inputs: RecoveryInputs, normals: Tensor, params: GlobalParams, config: RecoveryConfig, *, fit_globals: bool,
+    fit_kappa: bool | None, history: list[dict], timings: dict[str, float], skipped: list[str], level: int,
+    t_start: float,
+) -> _State:
+    """Alternate global parameters and normals on one pyramid level."""
+    pixels = inputs.mask
+    obs = _flatten(inputs, pixels)
+    n = normals[pixels].clone()  # (P, 3)
+    p_count = n.shape[0]
+    polarised = inputs.has_polarisation
+    delta = _huber_delta(obs, inputs.noise_std)
+    sub_idx = _subsample(p_count, config.subsample_pixels, config.seed + level, n.device)
+    window: list[float] = []
+    k_b = torch.zeros(p_count, dtype=n.dtype, device=n.device)
+    outer = config.max_outer_iterations if fit_globals else 1
+    kappa_decided = fit_kappa is not None
+    for it in tqdm(range(outer), desc=f"level {level}", unit="iteration", disable=not config.progress):
+        if fit_globals:
+            t0 = time.perf_counter()
+            fit = fit_reflectance(
+                n[sub_idx], obs.select(sub_idx), init=params, per_pixel_albedo=config.per_pixel_albedo,
+                fit_kappa=bool(fit_kappa), polarised=polarised, delta=delta, grid_search=(it == 0 and level_is_first(history)),
+                max_iter=4 if it else 12,
+                # the initial (Lambertian) normals are biased by highlights: fit the lobe width first,
+                # free μ and β once the normals have moved to the model
+                fit_names=("alpha",) if it == 0 else ("alpha", "beta") if it == 1 else None,
+            )
+            params = fit.params
+            timings["global_params"] = timings.get("global_params", 0.0) + time.perf_counter() - t0
+        t0 = time.perf_counter()
+        tables = build_tables(ior=params.ior, alpha=params.alpha, beta=params.beta, kappa=params.kappa, device=n.device)
+        problem = _NormalProblem(tables, obs, params.k_s, config.per_pixel_albedo, params.k_b, polarised, delta)
+        n, k_b, loss_pp, n_iter = _refine_normals(problem, n, obs, max_iter=6 if fit_globals else 10)
+        timings["normals"] = timings.get("normals", 0.0) + time.perf_counter() - t0
+        loss = float(loss_pp.sum() / obs.weight.sum().clamp_min(1.0))
+        if it == 0 and fit_globals:
+            with torch.no_grad():
+                r, _ = problem.residual(n, obs)
+            new_delta = _huber_delta(obs, inputs.noise_std, r)
+            if abs(new_delta - delta) > 0.25 * delta:
+                delta = new_delta
+                loss_pp = problem_loss_with(problem, n, obs, delta)
+                loss = float(loss_pp.sum() / obs.weight.sum().clamp_min(1.0))
+        history.append({"stage": f"level{level}", "iteration": it, "loss": loss, "lm_iterations": n_iter,
+                        "seconds": time.perf_counter() - t_start, **params.as_dict()})
+        logger.info("level %d outer %d: loss %.6g, %s", level, it, loss, params.as_dict())
+        window.append(loss)
+        # converged: the loss changed by ≤ 0.1 % over the last two outer iterations (a window)
+        if len(window) >= 3 and abs(window[-3] - window[-1]) <= 1e-3 * abs(window[-3]):
+            if not kappa_decided and fit_globals:
+                kappa_decided = True
+                t0 = time.perf_counter()
+                # cheap probe first: does any κ on a coarse grid lower the loss by ≥ 1 %?
+                sub_n, sub_obs = n[sub_idx], obs.select(sub_idx)
+                base_loss = objective(params, sub_n, sub_obs, per_pixel_albedo=config.per_pixel_albedo,
+                                      polarised=polarised, delta=delta)
+                probes = {kap: objective(GlobalParams(**{**vars(params), "kappa": kap}), sub_n, sub_obs,
+                                         per_pixel_albedo=config.per_pixel_albedo, polarised=polarised, delta=delta)
+                          for kap in (5.0, 20.0, 60.0)}
+                best_kappa = min(probes, key=lambda kap: probes[kap])
+                trial_loss = probes[best_kappa]
+                if (base_loss - trial_loss) >= 0.01 * base_loss:
+                    trial = fit_reflectance(sub_n, sub_obs, init=GlobalParams(**{**vars(params), "kappa": best_kappa}),
+                                            per_pixel_albedo=config.per_pixel_albedo, fit_kappa=True,
+                                            polarised=polarised, delta=delta, grid_search=False, max_iter=6)
+                    trial_loss = trial.loss
+                gain = (base_loss - trial_loss) / max(base_loss, 1e-30)
+                timings["kappa_test"] = time.perf_counter() - t0
+                if gain < 0.01:
+                    skipped.append(f"kappa: κ > 0 changed the loss by {-100 * gain:+.2f}% (needs ≤ -1%): κ = 0, separable fast path")
+                else:
+                    params = trial.params
+                    fit_kappa = True
+                    window.clear()
+                    continue
+            break
+    else:
+        if fit_globals:
+            logger.info("level %d: reached max_outer_iterations=%d", level, outer)
+    if not kappa_decided and fit_globals and not fit_kappa:
+        skipped.append("kappa: not tested (alternation did not converge within max_outer_iterations): κ kept at 0")
+    normals_img = torch.full_like(normals, math.nan)
+    normals_img[pixels] = n
+    kb_img = torch.full(pixels.shape, math.nan, dtype=n.dtype, device=n.device)
+    kb_img[pixels] = k_b
+    return _State(params, normals_img, kb_img)
+
+
+def problem_loss_with(problem: "_NormalProblem", normals: Tensor, obs: Observations, delta: float) -> Tensor:
+    """Per-pixel loss (P,) of ``normals`` with a new Huber threshold (also stored in ``problem``)."""
+    problem.delta = delta
+    with torch.no_grad():
+        r, _ = problem.residual(normals, obs)
+    return problem.loss(r)
+
+
+def level_is_first(history: list[dict]) -> bool:
+    """True before any alternation was recorded (the grid search runs once per recovery)."""
+    return not any(h.get("stage", "").startswith("level") for h in history)
+
+
+def _render(inputs: RecoveryInputs, state: _State) -> Tensor:
+    """(K, 3, H, W) Stokes rendered with the recovered normals, parameters and albedo (0 outside)."""
+    pixels = inputs.mask
+    obs = _flatten(inputs, pixels)
+    p = state.params
+    with torch.no_grad():
+        tables = build_tables(ior=p.ior, alpha=p.alpha, beta=p.beta, kappa=p.kappa, device=inputs.stokes.device)
+        surf, body = render_parts(tables, state.normals[pixels], obs)
+        s = p.k_s * surf + state.k_b[pixels][:, None, None] * body  # (P, K, 3)
+    out = torch.zeros(inputs.stokes.shape[-2], inputs.stokes.shape[-1], *s.shape[1:], dtype=s.dtype, device=s.device)
+    out[pixels] = s
+    return out.permute(2, 3, 0, 1)
+
+
+def recover_inputs(inputs: RecoveryInputs, config: RecoveryConfig = RecoveryConfig()) -> RecoveryResult:
+    """Recovery on preprocessed inputs (same grid as ``inputs``); see :func:`recover_capture`."""
+    _check_config(config)
+    t_start = time.perf_counter()
+    timings: dict[str, float] = {}
+    history: list[dict] = []
+    skipped: list[str] = []
+    full_shape = inputs.shape
+    cropped = crop_inputs(inputs)
+    if cropped.shape != full_shape:
+        skipped.append(f"crop: solved on the mask's bounding box {cropped.shape} of {full_shape} super-pixels")
+    k = inputs.num_lights
+    if k < 3:
+        raise ValueError(f"capture: {k} light(s); recovery needs at least 3 non-coplanar lights (add lights)")
+
+    t0 = time.perf_counter()
+    n0, albedo0 = _lambertian(cropped, cropped.mask)
+    timings["init_lambertian"] = time.perf_counter() - t0
+
+    model = config.model
+    if model == "auto":
+        model = _choose_model(cropped, n0, albedo0, skipped)
+    if model == "fmbrdf" and not cropped.has_polarisation:
+        skipped.append("polarisation: s1 = s2 = 0 everywhere (no polariser): intensity-only fit")
+
+    if model == "lambertian":
+        state = _State(GlobalParams(), n0, albedo0)
+        params = {"k_d_mean": float(albedo0[cropped.mask].mean()) if bool(cropped.mask.any()) else 0.0}
+        rendered_c = (albedo0.unsqueeze(0) * (torch.einsum("hwc,kc->khw", n0, cropped.lights) if cropped.lights.ndim == 2
+                      else (n0.unsqueeze(0) * cropped.lights).sum(-1)).clamp_min(0)
+                      * (cropped.irradiance.reshape(-1, 1, 1) if cropped.irradiance.ndim == 1 else cropped.irradiance))
+        rendered_c = torch.stack([rendered_c, torch.zeros_like(rendered_c), torch.zeros_like(rendered_c)], 1)
+        rendered_c = torch.where(cropped.mask, rendered_c, torch.zeros_like(rendered_c))
+        normals_c = torch.where(cropped.mask.unsqueeze(-1), n0, torch.full_like(n0, math.nan))
+        albedo_c = torch.where(cropped.mask, albedo0, torch.full_like(albedo0, math.nan))
+    else:
+        levels = [cropped]
+        if config.coarse_to_fine:
+            while int(levels[-1].mask.sum()) > 4 * config.subsample_pixels and min(levels[-1].shape) >= 32:
+                levels.append(_downsample(levels[-1]))
+        if len(levels) == 1:
+            skipped.append("coarse_to_fine: single level (image small enough or disabled)")
+        t0 = time.perf_counter()
+        initial = [n0]  # Lambertian normals at every level (fallback where the coarser level has none)
+        for _ in range(len(levels) - 1):
+            initial.append(_unit(F.avg_pool2d(initial[-1].permute(2, 0, 1).unsqueeze(0), 2)[0].permute(1, 2, 0)))
+        normals = initial[-1]
+        timings["pyramid"] = time.perf_counter() - t0
+        params = GlobalParams()
+        state = None
+        for depth in range(len(levels) - 1, -1, -1):
+            level = levels[depth]
+            if state is not None:
+                up = state.normals.permute(2, 0, 1).unsqueeze(0)
+                up = torch.nan_to_num(up, nan=0.0)
+                up = F.interpolate(up, scale_factor=2, mode="nearest")[0].permute(1, 2, 0)
+                h, w = level.shape
+                full = initial[depth].clone()
+                hh, ww = min(h, up.shape[0]), min(w, up.shape[1])
+                ok = up[:hh, :ww].norm(dim=-1) > 0.5
+                full[:hh, :ww][ok] = _unit(up[:hh, :ww][ok])
+                normals = full
+            state = _fit_level(
+                level, normals, params, config, fit_globals=(state is None), fit_kappa=config.fit_kappa,
+                history=history, timings=timings, skipped=skipped, level=depth, t_start=t_start,
+            )
+            params = state.params
+        assert state is not None
+        t0 = time.perf_counter()
+        rendered_c = _render(cropped, state)
+        timings["render"] = time.perf_counter() - t0
+        normals_c, albedo_c = state.normals, state.k_b
+        params = state.params.as_dict()
+        if not config.per_pixel_albedo:
+            skipped.append("per_pixel_albedo: disabled by config (one global k_b)")
+
+    # paste the cropped result back into the full grid
+    h, w = full_shape
+    r0, c0 = cropped.offset[0] - inputs.offset[0], cropped.offset[1] - inputs.offset[1]
+    ch, cw = cropped.shape
+    dt, dev = inputs.stokes.dtype, inputs.stokes.device
+    normals_out = torch.full((h, w, 3), math.nan, dtype=dt, device=dev)
+    normals_out[r0:r0 + ch, c0:c0 + cw] = normals_c.to(dt)
+    albedo_out = torch.full((h, w), math.nan, dtype=dt, device=dev)
+    albedo_out[r0:r0 + ch, c0:c0 + cw] = albedo_c.to(dt)
+    rendered = torch.zeros_like(inputs.stokes)
+    rendered[..., r0:r0 + ch, c0:c0 + cw] = rendered_c.to(dt)
+    timings["total"] = time.perf_counter() - t_start
+    return RecoveryResult(
+        normals=normals_out, albedo=albedo_out, params=params, model=model, mask=inputs.mask.clone(),
+        rendered=rendered, observed=inputs.stokes, history=history, timings=timings, skipped=skipped,
+    )
+
+
+def _choose_model(inputs: RecoveryInputs, n0: Tensor, albedo0: Tensor, skipped: list[str]) -> str:
+    """"auto": Lambertian when robust PS explains s0 to 3 % of the median intensity (robust residual
+    σ; shot noise alone gives ≈ 1–2 %) and the light is unpolarised (median DoLP < 2 %, about the
+    noise level of 12-bit data), else the FMBRDF."""
+    m = inputs.mask
+    s0 = inputs.stokes[:, 0]
+    light = inputs.lights
+    shade = torch.einsum("hwc,kc->khw", n0, light) if light.ndim == 2 else (n0.unsqueeze(0) * light).sum(-1)
+    e = inputs.irradiance.reshape(-1, 1, 1) if inputs.irradiance.ndim == 1 else inputs.irradiance
+    pred = albedo0.unsqueeze(0) * shade.clamp_min(0) * e
+    use = inputs.valid & m.unsqueeze(0)
+    res = (s0 - pred)[use]
+    sigma = float(res.abs().median() * 1.4826) if res.numel() else 0.0
+    lin = inputs.stokes[:, 1:].norm(dim=1)
+    dolp = (lin / s0.clamp_min(1e-6))[use]
+    med_dolp = float(dolp.median()) if dolp.numel() else 0.0
+    scale = float(s0[use].median()) if bool(use.any()) else 0.0
+    if sigma <= 0.03 * scale and med_dolp < 0.02:
+        skipped.append(
+            f"fmbrdf: Lambertian PS explains the data (robust residual σ {sigma:.2e}, median DoLP {med_dolp:.3f}): "
+            "model 'lambertian' chosen"
+        )
+        return "lambertian"
+    return "fmbrdf"
+
+
+def recover_capture(capture: Capture, config: RecoveryConfig = RecoveryConfig()) -> RecoveryResult:
+    """Recover per-pixel normals and reflectance from a polarimetric capture under K known lights.
+
+    Args:
+        capture: the capture (frames, lights, mask); directional lights (point lights need a depth
+            estimate, see :func:`polarshape.recover.preprocess.preprocess_capture`).
+        config: :class:`RecoveryConfig`.
+
+    Returns:
+        :class:`RecoveryResult` at the capture's super-pixel resolution (H, W) = frames / 2.
+
+    Raises:
+        ValueError: fewer than 3 lights, coplanar lights, invalid configuration or capture.
+    """
+    _check_config(config)
+    torch.manual_seed(config.seed)
+    t0 = time.perf_counter()
+    inputs = preprocess_capture(capture, dtype=config.dtype, device=config.device, demosaic=config.demosaic,
+                                sample_at=config.sample_at)
+    t_pre = time.perf_counter() - t0
+    result = recover_inputs(inputs, config)
+    result.timings["preprocess"] = t_pre
+    result.timings["total"] += t_pre
+    return result

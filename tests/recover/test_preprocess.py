@@ -1,0 +1,143 @@
+"""Tests of polarshape.recover.preprocess: Capture → super-pixel Stokes, validity, lights, views."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from polarshape.imaging.mosaic import mosaic_from_stokes
+from polarshape.imaging.pixels import float_to_counts
+from polarshape.io.capture import Capture, parse_capture_spec
+from polarshape.recover.preprocess import crop_inputs, preprocess_capture, superpixel_view_directions
+
+
+def _capture(stokes: torch.Tensor, *, projection: str = "orthographic", mask: np.ndarray | None = None,
+             lights: list[dict] | None = None) -> Capture:
+    """A 12-bit capture whose frames are the mosaics of ``stokes`` (K, 3, H, W) (fraction of full scale)."""
+    k = stokes.shape[0]
+    camera: dict = {"projection": projection, "bit_depth": 12}
+    if projection == "perspective":
+        h, w = stokes.shape[-2:]
+        camera["intrinsics"] = {"fx": 50.0, "fy": 50.0, "cx": w - 0.5, "cy": h - 0.5}
+    if lights is None:
+        lights = [{"direction": [math.sin(0.5) * math.cos(a), math.sin(0.5) * math.sin(a), -math.cos(0.5)]}
+                  for a in np.linspace(0, 2 * math.pi, k, endpoint=False)]
+    for i, light in enumerate(lights):
+        light["frame"] = f"frames/{i:03d}.png"
+    spec = parse_capture_spec({"format": "polarshape-capture/1", "camera": camera, "lights": lights})
+    layout = spec.camera.mosaic.to_layout()
+    frames = np.stack([float_to_counts(mosaic_from_stokes(stokes[i].double(), layout), 12) for i in range(k)])
+    return Capture(spec=spec, frames=frames, mask=mask)
+
+
+def _stokes(k: int = 4, h: int = 6, w: int = 8) -> torch.Tensor:
+    s0 = torch.full((k, h, w), 0.4, dtype=torch.float64)
+    s1 = torch.full((k, h, w), 0.1, dtype=torch.float64)
+    s2 = torch.full((k, h, w), -0.05, dtype=torch.float64)
+    return torch.stack([s0, s1, s2], 1)
+
+
+def test_orthographic_stokes_round_trip_and_shapes() -> None:
+    stokes = _stokes()
+    inp = preprocess_capture(_capture(stokes))
+    assert inp.stokes.shape == (4, 3, 6, 8)
+    assert inp.stokes.dtype == torch.float32
+    torch.testing.assert_close(inp.stokes.double(), stokes, atol=2e-3, rtol=0)
+    assert inp.valid.all() and inp.mask.all()
+    assert inp.has_polarisation
+    assert inp.lights.shape == (4, 3)
+    torch.testing.assert_close(inp.lights.norm(dim=-1), torch.ones(4))
+    torch.testing.assert_close(inp.view, torch.tensor([0.0, 0.0, -1.0]).expand(6, 8, 3))
+
+
+@pytest.mark.parametrize("demosaic", ["superpixel", "bilinear"])
+def test_dark_and_saturated_observations_are_invalid(demosaic: str) -> None:
+    stokes = _stokes()
+    stokes[1, 0, 2, 3] = 0.001  # dark
+    stokes[1, 1:, 2, 3] = 0.0
+    stokes[2, 0, 4, 5] = 2.2  # I_θ = ½(s0 ± ...) > 1 at every site: clipped
+    inp = preprocess_capture(_capture(stokes), demosaic=demosaic)
+    assert not inp.valid[1, 2, 3] and not inp.valid[2, 4, 5]
+    assert inp.saturated[2, 4, 5] and not inp.saturated[1, 2, 3]
+    if demosaic == "superpixel":
+        assert int((~inp.valid).sum()) == 2
+    else:  # bilinear interpolation carries the clipped sites into the 8 neighbouring blocks
+        assert bool(inp.saturated[2, 3:6, 4:7].all()) and int(inp.saturated.sum()) == 9
+        assert int((~inp.valid).sum()) == 10
+
+
+def test_bilinear_samples_one_point_per_block() -> None:
+    """A horizontal ramp of s0: the super-pixel estimate mixes sites half a pixel apart and invents
+    s1 ≠ 0; the bilinear estimate at the block centre (or at one site) does not."""
+    from polarshape.recover.preprocess import superpixel_stokes
+
+    k, h, w = 1, 6, 12
+    x = torch.arange(2 * w, dtype=torch.float64)
+    layout = _capture(_stokes(1, h, w)).layout
+    mosaic = (0.2 + 0.02 * x).expand(2 * h, 2 * w).unsqueeze(0)  # unpolarised ramp: I_θ = ½ s0 = ramp
+    plain = superpixel_stokes(mosaic, layout, demosaic="superpixel")
+    centre = superpixel_stokes(mosaic, layout, demosaic="bilinear")
+    corner = superpixel_stokes(mosaic, layout, demosaic="bilinear", sample_at="top_left")
+    inner = (..., slice(1, -1), slice(1, -1))
+    assert float(plain[:, 1:][inner].abs().max()) > 0.005  # spurious polarisation from the gradient
+    torch.testing.assert_close(centre[:, 1:][inner], torch.zeros_like(centre[:, 1:][inner]), atol=1e-9, rtol=0)
+    torch.testing.assert_close(corner[:, 1:][inner], torch.zeros_like(corner[:, 1:][inner]), atol=1e-9, rtol=0)
+    # s0 at the centre of block j is the ramp at x = 2j + 0.5; at its top-left site, at x = 2j
+    j = torch.arange(w, dtype=torch.float64)
+    torch.testing.assert_close(centre[0, 0][inner], (2 * (0.2 + 0.02 * (2 * j + 0.5))).expand(h, w)[1:-1, 1:-1])
+    torch.testing.assert_close(corner[0, 0][inner], (2 * (0.2 + 0.02 * (2 * j))).expand(h, w)[1:-1, 1:-1])
+    with pytest.raises(ValueError, match="sample_at 'top_left' needs demosaic 'bilinear'"):
+        superpixel_stokes(mosaic, layout, demosaic="superpixel", sample_at="top_left")
+    with pytest.raises(ValueError, match="demosaic must be one of"):
+        superpixel_stokes(mosaic, layout, demosaic="nearest")
+
+
+def test_mask_restricts_validity_and_crop() -> None:
+    mask = np.zeros((6, 8), dtype=bool)
+    mask[1:4, 2:7] = True
+    inp = preprocess_capture(_capture(_stokes(), mask=mask))
+    assert int(inp.valid.sum()) == 4 * int(mask.sum())
+    crop = crop_inputs(inp)
+    assert crop.shape == (3, 5) and crop.offset == (1, 2) and bool(crop.mask.all())
+
+
+def test_no_polariser_detected() -> None:
+    stokes = _stokes()
+    stokes[:, 1:] = 0.0
+    assert not preprocess_capture(_capture(stokes)).has_polarisation
+
+
+def test_perspective_views_and_stokes_back_in_pixel_frames() -> None:
+    from polarshape.render import sensor_plane_stokes
+
+    stokes = _stokes(h=8, w=8)
+    probe = _capture(stokes, projection="perspective")
+    view = superpixel_view_directions(probe, 8, 8)
+    # the sensor reports sensor-plane angles: build the capture from those, expect per-pixel back
+    sensor = sensor_plane_stokes(stokes, view)
+    assert float((sensor - stokes).abs().max()) > 1e-3  # off-axis pixels differ
+    inp = preprocess_capture(_capture(sensor, projection="perspective"))
+    torch.testing.assert_close(inp.stokes.double(), stokes, atol=3e-3, rtol=0)
+    assert bool((inp.view[..., 2] < 0).all())
+    torch.testing.assert_close(inp.view.norm(dim=-1), torch.ones(8, 8))
+
+
+def test_point_lights_need_points() -> None:
+    lights = [{"position": [0.1 * i, 0.0, -0.5]} for i in range(3)]
+    cap = _capture(_stokes(k=3), lights=lights)
+    with pytest.raises(ValueError, match="points"):
+        preprocess_capture(cap)
+    pts = np.zeros((6, 8, 3))
+    pts[..., 2] = 0.5
+    inp = preprocess_capture(cap, points=pts)
+    assert inp.lights.shape == (3, 6, 8, 3) and inp.irradiance.shape == (3, 6, 8)
+    # light 0 at distance 1 m from every point on the plane x = y = 0, z = 0.5 ... (0,0,-0.5) → 1 m
+    torch.testing.assert_close(inp.irradiance[0], torch.ones(6, 8), atol=1e-5, rtol=0)
+
+
+def test_bad_dark_threshold() -> None:
+    with pytest.raises(ValueError, match="dark_threshold"):
+        preprocess_capture(_capture(_stokes()), dark_threshold=1.5)
