@@ -155,13 +155,17 @@ class RecoveryOptions(_Strict):
 
     model: Literal["auto", "fmbrdf", "lambertian"] = Field(
         "auto", description="fmbrdf = Fresnel microfacet BRDF joint fit; lambertian = robust Lambertian PS only; "
-        "auto = fmbrdf where it is available and the data are polarised"
+        "auto = fmbrdf unless the data are unpolarised and Lambertian PS explains them"
     )
     per_pixel_albedo: bool = True
     fit_kappa: bool | None = Field(None, description="fit the microfacet correlation kappa (null: the recovery decides)")
     max_outer_iterations: int = Field(20, ge=1, le=1000)
     subsample_pixels: int = Field(4096, ge=64, description="pixels used for the material fit")
     coarse_to_fine: bool = True
+    smoothness: float = Field(
+        0.0, ge=0.0, le=100.0, description="weight of a normal-smoothness prior after the per-pixel fit (0: per-pixel "
+        "maximum likelihood; 0.5: a neighbour weighs half a typical pixel's own data; smooths across creases)"
+    )
 
 
 class IntegrationConfig(_Strict):

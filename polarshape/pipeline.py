@@ -348,6 +348,7 @@ def _joint_recovery(inputs: RecoveryInputs, config: RunConfig, device: str, dtyp
             max_outer_iterations=options.max_outer_iterations,
             subsample_pixels=options.subsample_pixels,
             coarse_to_fine=options.coarse_to_fine,
+            smoothness=options.smoothness,
             demosaic=config.preprocess.demosaic,
             sample_at=config.preprocess.sample_at,
             device=device,

@@ -95,13 +95,19 @@ class RecoveryInputs:
         return int(self.stokes.shape[-2]), int(self.stokes.shape[-1])
 
 
-def superpixel_view_directions(capture: Capture, height: int, width: int, *, dtype: torch.dtype = torch.float64) -> Tensor:
-    """(H, W, 3) unit directions surface → camera at each super-pixel centre, camera frame.
+def superpixel_view_directions(
+    capture: Capture, height: int, width: int, *, dtype: torch.dtype = torch.float64, sample_at: str = "centre"
+) -> Tensor:
+    """(H, W, 3) unit directions surface → camera at each super-pixel's sample point, camera frame.
 
     Orthographic: (0, 0, −1). Perspective (pinhole at the origin, raw-pixel intrinsics): the
-    super-pixel (y, x) covers raw pixels (2y..2y+1, 2x..2x+1), centre (2x + 0.5, 2y + 0.5), and
-    V = −normalise(((u − cx)/fx, (v − cy)/fy, 1)).
+    super-pixel (y, x) covers raw pixels (2y..2y+1, 2x..2x+1); its sample point is the centre
+    (2x + 0.5, 2y + 0.5) or the site ``sample_at`` (e.g. top_left: (2x, 2y)); the ray through it,
+    undistorted with ``camera.distortion`` when present (OpenCV model, ``cv2.undistortPoints``: the
+    frames are not resampled, which would mix the polariser channels), gives V = −normalise(ray).
     """
+    if sample_at not in SAMPLE_SITES:
+        raise ValueError(f"sample_at must be one of {tuple(SAMPLE_SITES)}; got {sample_at!r}")
     cam = capture.spec.camera
     if cam.projection == "orthographic":
         view = torch.zeros(height, width, 3, dtype=dtype)
@@ -110,12 +116,18 @@ def superpixel_view_directions(capture: Capture, height: int, width: int, *, dty
     k = cam.intrinsics
     if k is None:
         raise ValueError("capture.yaml: camera.intrinsics are required for a perspective camera")
+    site = SAMPLE_SITES[sample_at]
+    dy, dx = (0.5, 0.5) if site is None else (float(site[0]), float(site[1]))
+    v, u = np.meshgrid(np.arange(height) * 2.0 + dy, np.arange(width) * 2.0 + dx, indexing="ij")
     if cam.distortion is not None and any(abs(c) > 0 for c in cam.distortion):
-        logger.warning("camera.distortion is ignored by recovery: undistort the frames first for accurate normals")
-    v, u = torch.meshgrid(
-        torch.arange(height, dtype=dtype) * 2 + 0.5, torch.arange(width, dtype=dtype) * 2 + 0.5, indexing="ij"
-    )
-    ray = torch.stack([(u - k.cx) / k.fx, (v - k.cy) / k.fy, torch.ones_like(u)], dim=-1)
+        import cv2
+
+        matrix = np.array([[k.fx, 0.0, k.cx], [0.0, k.fy, k.cy], [0.0, 0.0, 1.0]])
+        points = np.stack([u, v], -1).reshape(-1, 1, 2)
+        xy = cv2.undistortPoints(points, matrix, np.asarray(cam.distortion, dtype=np.float64)).reshape(height, width, 2)
+    else:
+        xy = np.stack([(u - k.cx) / k.fx, (v - k.cy) / k.fy], -1)
+    ray = torch.from_numpy(np.concatenate([xy, np.ones((height, width, 1))], -1)).to(dtype)
     return -ray / ray.norm(dim=-1, keepdim=True)
 
 
@@ -192,7 +204,7 @@ def preprocess_capture(
     mosaic = counts_to_float(frames, bit_depth, black, dtype=torch.float64)  # (K, 2H, 2W)
     stokes = superpixel_stokes(mosaic, capture.layout, demosaic=demosaic, sample_at=sample_at)  # (K, 3, H, W)
     sites = split_mosaic(mosaic, capture.layout)  # (K, 4, H, W) at 0°, 45°, 90°, 135°
-    view = superpixel_view_directions(capture, h, w)  # (H, W, 3) float64
+    view = superpixel_view_directions(capture, h, w, sample_at=sample_at)  # (H, W, 3) float64
     if capture.spec.camera.projection == "perspective":
         stokes = _to_pixel_frames(stokes, view)
 

@@ -430,7 +430,9 @@ def fit_reflectance(
         for it in range(max_iter):
             layout = (p.alpha, p.beta, p.kappa)
             u = torch.tensor([_to_u(n, getattr(p, n)) for n in names], dtype=torch.float64)
-            r_base, _, _ = evaluate(current(), layout)  # same layout as the differences
+            # r was evaluated at the current point with its own layout, which is this layout
+            # (build_tables' default): it is the base of the forward differences as it stands
+            r_base = r
             cols = []
             for i, n in enumerate(names):
                 vals = current()

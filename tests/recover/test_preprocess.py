@@ -125,6 +125,29 @@ def test_perspective_views_and_stokes_back_in_pixel_frames() -> None:
     torch.testing.assert_close(inp.view.norm(dim=-1), torch.ones(8, 8))
 
 
+def test_perspective_views_follow_the_sample_site_and_the_distortion() -> None:
+    import dataclasses
+
+    probe = _capture(_stokes(h=8, w=8), projection="perspective")  # fx = fy = 50, (cx, cy) = (7.5, 7.5)
+    k = probe.spec.camera.intrinsics
+    centre = superpixel_view_directions(probe, 8, 8)
+    corner = superpixel_view_directions(probe, 8, 8, sample_at="top_left")
+    # pinhole: V ∝ −((u − cx)/fx, (v − cy)/fy, 1) at u = 2x + 0.5 (centre) or 2x (top-left site)
+    expect = torch.tensor([-(2 * 3 + 0.5 - k.cx) / k.fx, -(2 * 5 + 0.5 - k.cy) / k.fy, -1.0], dtype=torch.float64)
+    torch.testing.assert_close(centre[5, 3], expect / expect.norm())
+    expect = torch.tensor([-(2 * 3 - k.cx) / k.fx, -(2 * 5 - k.cy) / k.fy, -1.0], dtype=torch.float64)
+    torch.testing.assert_close(corner[5, 3], expect / expect.norm())
+    # barrel distortion (k1 < 0) pulls image points inwards: the undistorted ray lies further out
+    camera = probe.spec.camera.model_copy(update={"distortion": (-0.2, 0.0, 0.0, 0.0, 0.0)})
+    distorted = dataclasses.replace(probe, spec=probe.spec.model_copy(update={"camera": camera}))
+    view = superpixel_view_directions(distorted, 8, 8)
+    off_axis = lambda d: torch.atan2(d[..., :2].norm(dim=-1), -d[..., 2])  # noqa: E731
+    assert bool((off_axis(view[0, 0]) > off_axis(centre[0, 0]) + 1e-3))
+    torch.testing.assert_close(view.norm(dim=-1), torch.ones(8, 8, dtype=torch.float64))
+    with pytest.raises(ValueError, match="sample_at must be one of"):
+        superpixel_view_directions(probe, 8, 8, sample_at="middle")
+
+
 def test_point_lights_need_points() -> None:
     lights = [{"position": [0.1 * i, 0.0, -0.5]} for i in range(3)]
     cap = _capture(_stokes(k=3), lights=lights)
