@@ -95,9 +95,16 @@ def _cmd_inspect(args: argparse.Namespace) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser with every sub-command."""
-    parser = argparse.ArgumentParser(prog="polarshape", description="Shape and reflectance from polarisation images.")
+    parser = argparse.ArgumentParser(
+        prog="polarshape",
+        description="Shape and reflectance from polarisation images. Start with: polarshape run configs/default.yaml",
+    )
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv for debug)")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    from polarshape.cli_run import add_parsers as add_run_parsers
+
+    add_run_parsers(sub)  # the main command first
 
     sim = sub.add_parser(
         "simulate",
@@ -144,9 +151,7 @@ def build_parser() -> argparse.ArgumentParser:
     insp.set_defaults(handler=_cmd_inspect)
 
     from polarshape.cli_acquisition import add_parsers as add_acquisition_parsers
-    from polarshape.cli_run import add_parsers as add_run_parsers
 
-    add_run_parsers(sub)
     add_acquisition_parsers(sub)
     return parser
 
