@@ -117,6 +117,8 @@ class ArcFourier(torch.autograd.Function):
     def forward(ctx, h_even: Tensor, h_odd: Tensor, phi: Tensor, n_modes: int) -> tuple[Tensor, Tensor]:  # noqa: ANN001
         ctx.save_for_backward(phi)
         ctx.n_modes = n_modes
+        if n_modes == 1:  # κ = 0: only m = 0 (cos 0 = 1, sin 0 = 0), no trigonometry needed
+            return h_even.sum(-1).unsqueeze(1), torch.zeros_like(h_odd[..., 0]).unsqueeze(0)
         even = torch.stack([(h_even * c).sum(-1) for c, _ in ArcFourier._modes(phi, n_modes)], dim=1)
         odd = torch.stack([(h_odd * s).sum(-1) for _, s in ArcFourier._modes(phi, n_modes)], dim=0)
         return even, odd
@@ -124,6 +126,9 @@ class ArcFourier(torch.autograd.Function):
     @staticmethod
     def backward(ctx, g_even: Tensor, g_odd: Tensor):  # noqa: ANN001, ANN205
         (phi,) = ctx.saved_tensors
+        if ctx.n_modes == 1:
+            d_even = g_even[:, 0].unsqueeze(-1).expand(g_even.shape[0], *phi.shape).contiguous()
+            return d_even, torch.zeros_like(phi), None, None
         d_even = torch.zeros((g_even.shape[0], *phi.shape), dtype=phi.dtype, device=phi.device)
         d_odd = torch.zeros_like(phi)
         for i, (c, s) in enumerate(ArcFourier._modes(phi, ctx.n_modes)):

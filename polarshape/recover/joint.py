@@ -407,7 +407,7 @@ def _fit_level(
             fit = fit_reflectance(
                 n[sub_idx], obs.select(sub_idx), init=params, per_pixel_albedo=config.per_pixel_albedo,
                 fit_kappa=bool(fit_kappa), polarised=polarised, delta=delta, grid_search=(it == 0 and level_is_first(history)),
-                max_iter=4 if it else 12,
+                max_iter=12 if it == 0 else 4 if it == 1 else 2,
                 # the initial (Lambertian) normals are biased by highlights: fit the lobe width first,
                 # free μ and β once the normals have moved to the model
                 fit_names=("alpha",) if it == 0 else ("alpha", "beta") if it == 1 else None,
