@@ -248,6 +248,26 @@ def _refine_normals(
     return normals, k_b, loss, it
 
 
+#: Pixels per chunk of the per-pixel solve: the residual and its intermediates ((P, K) tensors,
+#: a few dozen of them) then stay a few MB each instead of hundreds at 1024² super-pixels.
+_CHUNK_PIXELS = 32768
+
+
+def _refine_normals_chunked(
+    problem: _NormalProblem, normals: Tensor, obs: Observations, *, max_iter: int
+) -> tuple[Tensor, Tensor, Tensor, int]:
+    """:func:`_refine_normals` over chunks of pixels (the pixels are independent): same result, less memory traffic."""
+    p = normals.shape[0]
+    if p <= _CHUNK_PIXELS:
+        return _refine_normals(problem, normals, obs, max_iter=max_iter)
+    parts = []
+    for start in range(0, p, _CHUNK_PIXELS):
+        idx = torch.arange(start, min(start + _CHUNK_PIXELS, p), device=normals.device)
+        parts.append(_refine_normals(problem, normals[idx].clone(), obs.select(idx), max_iter=max_iter))
+    return (torch.cat([q[0] for q in parts]), torch.cat([q[1] for q in parts]), torch.cat([q[2] for q in parts]),
+            max(q[3] for q in parts))
+
+
 def _unit(x: Tensor) -> Tensor:
     return x / x.norm(dim=-1, keepdim=True).clamp_min(1e-12)
 
@@ -370,11 +390,22 @@ def _lambertian(inputs: RecoveryInputs, pixels: Tensor) -> tuple[Tensor, Tensor]
             f"capture: {k} light(s); recovery needs at least 3 non-coplanar lights for the initial normals"
         )
     obs_mask = inputs.valid & pixels.unsqueeze(0)
-    # lights (K, 3) or (K, H, W, 3) and irradiance (K,) or (K, H, W) are the shapes robust PS takes
-    res = robust_lambertian_ps(
-        s0, inputs.lights, inputs.irradiance, obs_mask, view_dirs=inputs.view, saturation=None, noise_std=inputs.noise_std,
-    )
-    return res.normals, res.albedo
+    # lights (K, 3) or (K, H, W, 3) and irradiance (K,) or (K, H, W) are the shapes robust PS takes;
+    # pixels are independent: solve bands of rows (less memory traffic on large images)
+    h, w = pixels.shape
+    rows = max(1, _CHUNK_PIXELS // max(w, 1))
+    normals, albedo = [], []
+    for r0 in range(0, h, rows):
+        band = slice(r0, min(r0 + rows, h))
+        lights = inputs.lights if inputs.lights.ndim == 2 else inputs.lights[:, band]
+        irr = inputs.irradiance if inputs.irradiance.ndim == 1 else inputs.irradiance[:, band]
+        res = robust_lambertian_ps(
+            s0[:, band], lights, irr, obs_mask[:, band], view_dirs=inputs.view[band], saturation=None,
+            noise_std=inputs.noise_std,
+        )
+        normals.append(res.normals)
+        albedo.append(res.albedo)
+    return torch.cat(normals), torch.cat(albedo)
 
 
 @dataclass
@@ -417,7 +448,7 @@ def _fit_level(
         t0 = time.perf_counter()
         tables = build_tables(ior=params.ior, alpha=params.alpha, beta=params.beta, kappa=params.kappa, device=n.device)
         problem = _NormalProblem(tables, obs, params.k_s, config.per_pixel_albedo, params.k_b, polarised, delta)
-        n, k_b, loss_pp, n_iter = _refine_normals(problem, n, obs, max_iter=6 if fit_globals else 10)
+        n, k_b, loss_pp, n_iter = _refine_normals_chunked(problem, n, obs, max_iter=6 if fit_globals else 10)
         timings["normals"] = timings.get("normals", 0.0) + time.perf_counter() - t0
         loss = float(loss_pp.sum() / obs.weight.sum().clamp_min(1.0))
         if it == 0 and fit_globals:
