@@ -142,8 +142,10 @@ def test_roi_offset(fake: FakeGigECamera) -> None:
 
 
 def test_frame_ids_wrap_and_the_count_stays_monotonic(fake: FakeGigECamera) -> None:
-    # the fake's 16-bit ids start at 65400: ~140 free-running frames cross 65535 -> 1
-    with _open(fake, trigger="off", frame_rate_hz=1000.0) as cam:
+    # the fake's 16-bit ids start at 65400: ~140 free-running frames cross 65535 -> 1. At 1000 fps a
+    # busy 2-core CI machine once ran out of stream buffers (underruns, MISSING_PACKETS 3×): 250 fps
+    # and more attempts keep the test about the ids, not about loopback throughput
+    with _open(fake, trigger="off", frame_rate_hz=250.0, max_attempts=8) as cam:
         cam.configure(exposure_us=100.0)
         frames = [cam.capture(timeout_s=2.0) for _ in range(150)]
     raw = [f.frame_id for f in frames]
