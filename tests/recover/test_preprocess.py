@@ -164,3 +164,16 @@ def test_point_lights_need_points() -> None:
 def test_bad_dark_threshold() -> None:
     with pytest.raises(ValueError, match="dark_threshold"):
         preprocess_capture(_capture(_stokes()), dark_threshold=1.5)
+
+
+def test_16_bit_frames_of_a_12_bit_adc_saturate_at_65520() -> None:
+    """PolarizeMono16 carries 12-bit counts × 16: its top is 4095 · 16 = 65520, not 65535."""
+    import dataclasses
+
+    cap = _capture(_stokes())
+    spec = cap.spec.model_copy(update={"camera": cap.spec.camera.model_copy(update={"bit_depth": 16})})
+    frames = (cap.frames.astype(np.int64) * 16).astype(np.uint16)
+    frames[1, 4, 6] = 65520  # one site of super-pixel (2, 3) under light 1 at the 12-bit top
+    inp = preprocess_capture(dataclasses.replace(cap, spec=spec, frames=frames), demosaic="superpixel")
+    assert bool(inp.saturated[1, 2, 3]) and not bool(inp.valid[1, 2, 3])
+    assert int(inp.saturated.sum()) == 1
