@@ -290,15 +290,16 @@ def _huber_delta(obs: Observations, noise_std: float, residual: Tensor | None = 
     return max(3.0 * sigma, floor)
 
 
-def _information(problem: _NormalProblem, normals: Tensor, obs: Observations, step_h: float = 2e-3) -> Tensor:
+def _information(problem: _NormalProblem, normals: Tensor, obs: Observations, step_h: float = 2e-3,
+                 residual: Tensor | None = None) -> Tensor:
     """Gauss–Newton information (P, 3, 3) of each pixel's normal (P, 3) in the camera frame.
 
     JᵀWJ of the (Huber-reweighted) residuals in the tangent plane (forward differences, as in
     :func:`_refine_normals`), mapped to 3-D: T (JᵀWJ) Tᵀ with T = [t1 t2] (P, 3, 2). Rank 2: the data
-    say nothing along N itself.
+    say nothing along N itself. ``residual``: ``problem.residual(normals, obs)[0]`` when the caller has it.
     """
     with torch.no_grad():
-        r0, _ = problem.residual(normals, obs)
+        r0 = problem.residual(normals, obs)[0] if residual is None else residual
         r0 = r0.reshape(normals.shape[0], -1)  # (P, M)
         t1, t2 = _tangent_basis(normals)
         cols = [(problem.residual(_unit(normals + step_h * t), obs)[0].reshape(r0.shape) - r0) / step_h for t in (t1, t2)]
@@ -522,7 +523,7 @@ def _smooth_state(inputs: RecoveryInputs, state: _State, config: RecoveryConfig)
         r, _ = problem.residual(n_ml, obs)
         problem.delta = _huber_delta(obs, inputs.noise_std, r)
         info = torch.zeros(*pixels.shape, 3, 3, dtype=n_ml.dtype, device=n_ml.device)
-        info[pixels] = _information(problem, n_ml, obs)
+        info[pixels] = _information(problem, n_ml, obs, residual=r)
         smoothed, lam = _map_smoothing(state.normals, info, pixels, config.smoothness)
         n = smoothed[pixels]
         facing = (n * obs.view).sum(-1) > 0
