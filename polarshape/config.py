@@ -163,6 +163,10 @@ class RecoveryOptions(_Strict):
     max_outer_iterations: int = Field(20, ge=1, le=1000)
     subsample_pixels: int = Field(4096, ge=64, description="pixels used for the material fit")
     coarse_to_fine: bool = True
+    propagate: bool = Field(
+        True, description="after each per-pixel solve, pixels try their neighbours' normals and keep a better fit "
+        "(escapes per-pixel local minima)"
+    )
     smoothness: float = Field(
         0.0, ge=0.0, le=100.0, description="weight of a normal-smoothness prior after the per-pixel fit (0: per-pixel "
         "maximum likelihood; 0.5: a neighbour weighs half a typical pixel's own data; smooths across creases)"

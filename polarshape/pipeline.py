@@ -349,6 +349,7 @@ def _joint_recovery(inputs: RecoveryInputs, config: RunConfig, device: str, dtyp
             subsample_pixels=options.subsample_pixels,
             coarse_to_fine=options.coarse_to_fine,
             smoothness=options.smoothness,
+            propagate=options.propagate,
             demosaic=config.preprocess.demosaic,
             sample_at=config.preprocess.sample_at,
             device=device,

@@ -14,12 +14,18 @@ Pipeline of :func:`recover_capture` (each stage timed in ``RecoveryResult.timing
       forward differences of the full model (k_b re-solved in closed form inside the residual:
       variable projection), Huber loss by iteratively reweighted least squares, per-pixel damping
       and acceptance; pixels whose step stayed below 1e-4 rad for two iterations are frozen
-      (active set), so later iterations only touch the pixels that still move.
+      (active set), so later iterations only touch the pixels that still move. Then each pixel
+      tries its 8 neighbours' normals and keeps one that fits its own data better, and the pixels
+      that switched are polished (:func:`_propagate`): a per-pixel local minimum (measured: a
+      patch 20–25° off under a highlight on a dark checker cell) is left through its neighbours.
    The alternation stops when the loss improved by less than 1e-4 (relative) summed over the last
    two outer iterations (a window, not one step) or after ``max_outer_iterations``.
    Finer levels start from the upsampled normals and run step b only.
 4. **κ** — with ``fit_kappa=None`` κ is fitted once at the end of the coarse level; if it lowers the
    loss by < 1 % it is reset to 0 (the separable fast path) and the skip recorded.
+5. **fill** — mask pixels with fewer than 3 usable observations (shadowed or saturated in most
+   lights, blocks straddling a texture edge) have no normal of their own: they take their
+   neighbours' (:func:`_fill_unsupported`; ``RecoveryResult.filled`` marks them).
 
 Robust loss: Huber on channel-weighted Stokes residuals (see :mod:`polarshape.recover.reflectometry`),
 δ = 3 × the robust (MAD) residual σ of the initial fit, floored at 4 quantisation steps.
@@ -69,6 +75,7 @@ class RecoveryConfig:
     max_outer_iterations: int = 20
     subsample_pixels: int = 4096  # pixels used for the global parameters
     coarse_to_fine: bool = True
+    propagate: bool = True  # pixels try their neighbours' normals (escapes per-pixel local minima), see _propagate
     smoothness: float = 0.0  # weight of the normal-smoothness prior (0: per-pixel maximum likelihood), see _map_smoothing
     demosaic: str = "bilinear"  # "bilinear" | "superpixel" (see polarshape.recover.preprocess)
     sample_at: str = "centre"  # where in each 2×2 block: "centre" | "top_left" | "top_right" | ...
@@ -92,6 +99,7 @@ class RecoveryResult:
     history: list[dict] = field(default_factory=list)  # per outer iteration: loss, seconds, stage
     timings: dict[str, float] = field(default_factory=dict)  # seconds per stage
     skipped: list[str] = field(default_factory=list)  # what was skipped and why (human-readable)
+    filled: Tensor | None = None  # (H, W) bool: mask pixels with < 3 usable observations, normal filled from neighbours
 
 
 def angular_error_deg(a: Tensor, b: Tensor) -> Tensor:
@@ -268,6 +276,73 @@ def _refine_normals_chunked(
             max(q[3] for q in parts))
 
 
+def _neighbour_index(pixels: Tensor) -> Tensor:
+    """(P, 8) flat indices (row-major over ``pixels`` (H, W) True) of each pixel's 8 neighbours
+    inside ``pixels``; −1 where a neighbour is outside."""
+    h, w = pixels.shape
+    flat = torch.full((h, w), -1, dtype=torch.int64, device=pixels.device)
+    flat[pixels] = torch.arange(int(pixels.sum()), device=pixels.device)
+    padded = F.pad(flat, (1, 1, 1, 1), value=-1)
+    cols = [padded[1 + dy:1 + dy + h, 1 + dx:1 + dx + w][pixels]
+            for dy in (-1, 0, 1) for dx in (-1, 0, 1) if (dy, dx) != (0, 0)]
+    return torch.stack(cols, -1)
+
+
+_COS_5DEG = math.cos(math.radians(5.0))
+
+
+def _propagate(
+    problem: _NormalProblem, normals: Tensor, k_b: Tensor, loss: Tensor, obs: Observations, neighbours: Tensor,
+    *, passes: int = 3, max_iter: int = 6,
+) -> tuple[Tensor, Tensor, Tensor, int]:
+    """Escape per-pixel local minima: each pixel tries its neighbours' normals (PatchMatch-style
+    propagation) and takes one that fits its own data better, then Levenberg–Marquardt polishes the
+    pixels that switched. A smooth surface hands its neighbours a start inside the right basin
+    where the initial (Lambertian) normal was outside it (e.g. under a highlight on a dark albedo).
+
+    Args:
+        problem: the per-pixel problem (fixed material).
+        normals, k_b, loss: (P, 3), (P,), (P,) current per-pixel solution and its loss (updated in place).
+        obs: observations of the P pixels.
+        neighbours: (P, 8) from :func:`_neighbour_index`.
+        passes: propagation rounds (each reaches one pixel further).
+
+    Returns:
+        normals, k_b, loss, and the number of pixels that switched.
+    """
+    switched_total = 0
+    with torch.no_grad():
+        for _ in range(passes):
+            switched = torch.zeros(normals.shape[0], dtype=torch.bool, device=normals.device)
+            for j in range(neighbours.shape[1]):
+                nb = neighbours[:, j]
+                # only neighbours that differ (> 5°) from the pixel's own normal are worth a try
+                differs = (normals * normals[nb.clamp_min(0)]).sum(-1) < _COS_5DEG
+                cand_idx = torch.nonzero((nb >= 0) & differs).flatten()
+                if cand_idx.numel() == 0:
+                    continue
+                for start in range(0, cand_idx.numel(), _CHUNK_PIXELS):
+                    idx = cand_idx[start:start + _CHUNK_PIXELS]
+                    sub = obs.select(idx)
+                    cand = normals[nb[idx]]
+                    facing = (cand * sub.view).sum(-1) > 0
+                    r, kb = problem.residual(cand, sub)
+                    lc = problem.loss(r)
+                    better = facing & torch.isfinite(lc) & (lc < loss[idx])
+                    bi = idx[better]
+                    normals[bi] = cand[better]
+                    k_b[bi] = kb[better]
+                    loss[bi] = lc[better]
+                    switched[bi] = True
+            moved = torch.nonzero(switched).flatten()
+            if moved.numel() == 0:
+                break
+            switched_total += int(moved.numel())
+            n_m, kb_m, l_m, _ = _refine_normals(problem, normals[moved].clone(), obs.select(moved), max_iter=max_iter)
+            normals[moved], k_b[moved], loss[moved] = n_m, kb_m, l_m
+    return normals, k_b, loss, switched_total
+
+
 def _unit(x: Tensor) -> Tensor:
     return x / x.norm(dim=-1, keepdim=True).clamp_min(1e-12)
 
@@ -409,6 +484,49 @@ def _lambertian(inputs: RecoveryInputs, pixels: Tensor) -> tuple[Tensor, Tensor]
     return torch.cat(normals), torch.cat(albedo)
 
 
+#: Usable observations a pixel needs for its own normal (2 DoF + its albedo; photometric stereo's 3).
+_MIN_OBSERVATIONS = 3
+_NEIGHBOURS_8 = tuple((dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if (dy, dx) != (0, 0))
+
+
+def _fill_unsupported(normals: Tensor, k_b: Tensor, pixels: Tensor, supported: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Give mask pixels without enough data the normal and albedo of their neighbours.
+
+    A pixel with fewer than :data:`_MIN_OBSERVATIONS` usable observations (shadowed or saturated in
+    most lights, or every block straddling a texture edge) has no normal of its own: measured on a
+    checker-textured sphere, such pixels kept 60–80° errors. They are filled from the outside in:
+    each round, an unfilled pixel with known 8-neighbours takes their normalised mean normal and
+    mean albedo. Pixels of a component with no supported pixel keep their values.
+
+    Args:
+        normals: (H, W, 3), k_b: (H, W) the fit's results.
+        pixels: (H, W) bool mask; supported: (H, W) bool pixels with enough observations.
+
+    Returns:
+        normals, k_b (copies) and the (H, W) bool mask of filled pixels.
+    """
+    known = pixels & supported
+    todo = pixels & ~supported
+    n = torch.where(known.unsqueeze(-1), torch.nan_to_num(normals), torch.zeros_like(normals))
+    a = torch.where(known, torch.nan_to_num(k_b), torch.zeros_like(k_b))
+    filled = torch.zeros_like(pixels)
+    while True:
+        kf = known.to(n.dtype)
+        count = sum(_shift(kf, dy, dx) for dy, dx in _NEIGHBOURS_8)
+        new = todo & ~known & (count > 0)
+        if not bool(new.any()):
+            break
+        sum_n = sum(_shift(n * kf.unsqueeze(-1), dy, dx) for dy, dx in _NEIGHBOURS_8)
+        sum_a = sum(_shift(a * kf, dy, dx) for dy, dx in _NEIGHBOURS_8)
+        n = torch.where(new.unsqueeze(-1), _unit(sum_n), n)
+        a = torch.where(new, sum_a / count.clamp_min(1.0), a)
+        known = known | new
+        filled = filled | new
+    out_n = torch.where(filled.unsqueeze(-1), n, normals)
+    out_a = torch.where(filled, a, k_b)
+    return out_n, out_a, filled
+
+
 @dataclass
 class _State:
     params: GlobalParams
@@ -429,6 +547,7 @@ def _fit_level(
     polarised = inputs.has_polarisation
     delta = _huber_delta(obs, inputs.noise_std)
     sub_idx = _subsample(p_count, config.subsample_pixels, config.seed + level, n.device)
+    neighbours = _neighbour_index(pixels) if config.propagate else None
     window: list[float] = []
     k_b = torch.zeros(p_count, dtype=n.dtype, device=n.device)
     outer = config.max_outer_iterations if fit_globals else 1
@@ -450,6 +569,10 @@ def _fit_level(
         tables = build_tables(ior=params.ior, alpha=params.alpha, beta=params.beta, kappa=params.kappa, device=n.device)
         problem = _NormalProblem(tables, obs, params.k_s, config.per_pixel_albedo, params.k_b, polarised, delta)
         n, k_b, loss_pp, n_iter = _refine_normals_chunked(problem, n, obs, max_iter=6 if fit_globals else 10)
+        if config.propagate:
+            n, k_b, loss_pp, moved = _propagate(problem, n, k_b, loss_pp, obs, neighbours)
+            if moved:
+                logger.info("level %d outer %d: %d pixels took a neighbour's normal", level, it, moved)
         timings["normals"] = timings.get("normals", 0.0) + time.perf_counter() - t0
         loss = float(loss_pp.sum() / obs.weight.sum().clamp_min(1.0))
         if it == 0 and fit_globals:
@@ -492,7 +615,8 @@ def _fit_level(
                 gain = (base_loss - trial_loss) / max(base_loss, 1e-30)
                 timings["kappa_test"] = time.perf_counter() - t0
                 if gain < 0.01:
-                    skipped.append(f"kappa: κ > 0 changed the loss by {-100 * gain:+.2f}% (needs ≤ -1%): κ = 0, separable fast path")
+                    skipped.append(f"kappa: κ > 0 changed the loss by {-100 * gain:+.2f}% (needs ≤ -1%): κ = 0, separable fast path "
+                                   "(fit_kappa: true forces κ)")
                 else:
                     params = trial.params
                     fit_kappa = True
@@ -599,6 +723,7 @@ def recover_inputs(inputs: RecoveryInputs, config: RecoveryConfig = RecoveryConf
         rendered_c = torch.stack([rendered_c, torch.zeros_like(rendered_c), torch.zeros_like(rendered_c)], 1)
         rendered_c = torch.where(cropped.mask, rendered_c, torch.zeros_like(rendered_c))
         normals_c = torch.where(cropped.mask.unsqueeze(-1), n0, torch.full_like(n0, math.nan))
+        filled_c = torch.zeros_like(cropped.mask)
         albedo_c = torch.where(cropped.mask, albedo0, torch.full_like(albedo0, math.nan))
     else:
         levels = [cropped]
@@ -633,6 +758,12 @@ def recover_inputs(inputs: RecoveryInputs, config: RecoveryConfig = RecoveryConf
             )
             params = state.params
         assert state is not None
+        supported = cropped.valid.sum(0) >= _MIN_OBSERVATIONS
+        filled_n, filled_a, filled_c = _fill_unsupported(state.normals, state.k_b, cropped.mask, supported)
+        if bool(filled_c.any()):
+            state = _State(state.params, filled_n, filled_a)
+            skipped.append(f"fill: {int(filled_c.sum())} mask pixels with < {_MIN_OBSERVATIONS} usable observations "
+                           "took their neighbours' normal and albedo (result.filled)")
         if config.smoothness > 0:
             t0 = time.perf_counter()
             state = _smooth_state(cropped, state, config)
@@ -658,10 +789,12 @@ def recover_inputs(inputs: RecoveryInputs, config: RecoveryConfig = RecoveryConf
     albedo_out[r0:r0 + ch, c0:c0 + cw] = albedo_c.to(dt)
     rendered = torch.zeros_like(inputs.stokes)
     rendered[..., r0:r0 + ch, c0:c0 + cw] = rendered_c.to(dt)
+    filled = torch.zeros((h, w), dtype=torch.bool, device=dev)
+    filled[r0:r0 + ch, c0:c0 + cw] = filled_c
     timings["total"] = time.perf_counter() - t_start
     return RecoveryResult(
         normals=normals_out, albedo=albedo_out, params=params, model=model, mask=inputs.mask.clone(),
-        rendered=rendered, observed=inputs.stokes, history=history, timings=timings, skipped=skipped,
+        rendered=rendered, observed=inputs.stokes, history=history, timings=timings, skipped=skipped, filled=filled,
     )
 
 

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from torch import Tensor
 import yaml
 
 from polarshape.acquisition.simulated import SimulatedCamera
@@ -49,26 +50,24 @@ def _errors(result: RecoveryResult, capture: Capture, min_missing: int = 3) -> t
 
 CASES = [("sphere", 0.05), ("sphere", 0.3), ("sphere", 0.8), ("blob", 0.05), ("blob", 0.3), ("blob", 0.8)]
 #: Super-pixels across. The blob's bumps curve strongly inside one super-pixel at low resolution and
-#: the 2×2 average of differently oriented sites depolarises (μ comes out high: 1.57 at 40², 1.525 at
-#: 80², 1.517 at 120²), so it is tested at 80²; the shiny sphere's lobe needs ≥ 56² for α ± 10 %.
-SIZES = {"sphere": 56, "blob": 80}
-#: (μ tolerance, α relative tolerance). Issue 4's targets are ±0.05 and ±10 %. Not met, so these
-#: cases assert what they reach: the rough blob's μ (measured 1.572 for α = 0.8 at 80²: it
-#: polarises weakly and its bumps depolarise inside a super-pixel) and the shiny blob's α (the lobe
-#: covers few pixels of a bumpy surface and α trades off against β: measured α 0.0426 / β 1.44 at
-#: 80², 0.0587 / 2.04 at 120², μ 1.505 both times).
-PARAM_TOL = {("blob", 0.8): (0.1, 0.1), ("blob", 0.05): (0.05, 0.2)}
+#: the 2×2 average of differently oriented sites depolarises (μ comes out high at 40²), so it is
+#: tested at 80². The shiny lobe (α = 0.05: about 3° wide) must span several super-pixels: on a 56²
+#: sphere the normal turns ≈ 3.2° per super-pixel and the interpolated Stokes broaden the lobe
+#: (measured α: 0.0572 at 56², 0.0553 at 84², 0.0530 at 112²; with the true normals 0.0556, 0.0525,
+#: 0.0514), so the shiny sphere is tested at 112².
+SIZES = {("sphere", 0.05): 112, "sphere": 56, "blob": 80}
 #: Exposure (µs) per roughness: at the scenes' 10 ms the shiny lobe saturates over its whole core and
 #: only its flanks are left, where α trades off against β (measured on the 56² sphere: α 0.010,
-#: β 0.63 instead of 0.05, 2); a 4× shorter exposure keeps the highlight on scale, as a user would
-#: set it (or bracket it with `polarshape capture`).
-EXPOSURE_US = {0.05: 2500.0}
+#: β 0.63 instead of 0.05, 2); at 2.5 ms its peak still clips (378 saturated observations on the
+#: 80² blob: α 0.0439, −12 %); at 1 ms none does, as a user would expose a shiny part (or bracket it
+#: with `polarshape capture`).
+EXPOSURE_US = {0.05: 1000.0}
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("kind,alpha", CASES)
 def test_recovery_simulated(kind: str, alpha: float) -> None:
-    capture = _simulate(kind, SIZES[kind], alpha, exposure_us=EXPOSURE_US.get(alpha))
+    capture = _simulate(kind, SIZES.get((kind, alpha), SIZES[kind]), alpha, exposure_us=EXPOSURE_US.get(alpha))
     cfg = RecoveryConfig(fit_kappa=False, max_outer_iterations=12)
     result = recover_capture(capture, cfg)
     lamb = recover_capture(capture, RecoveryConfig(model="lambertian"))
@@ -77,9 +76,9 @@ def test_recovery_simulated(kind: str, alpha: float) -> None:
     assert count > 300
     assert err <= 1.0, f"{kind} α={alpha}: mean normal error {err:.3f}° (Lambertian {err_l:.3f}°)"
     assert err_l >= 1.5 * err, f"Lambertian PS {err_l:.3f}° not clearly worse than {err:.3f}°"
-    tol_mu, tol_alpha = PARAM_TOL.get((kind, alpha), (0.05, 0.1))
-    assert abs(result.params["ior"] - 1.5) <= tol_mu, result.params
-    assert abs(result.params["alpha"] - alpha) <= tol_alpha * alpha, result.params
+    # issue 4's targets: μ within ±0.05, α within ±10 %
+    assert abs(result.params["ior"] - 1.5) <= 0.05, result.params
+    assert abs(result.params["alpha"] - alpha) <= 0.1 * alpha, result.params
     # result contract
     h, w = capture.mask.shape
     assert result.normals.shape == (h, w, 3) and result.albedo is not None and result.albedo.shape == (h, w)
@@ -267,3 +266,100 @@ def test_smoothness_config_is_checked() -> None:
     capture = _simulate("sphere", 16, 0.3)
     with pytest.raises(ValueError, match="smoothness"):
         recover_capture(capture, RecoveryConfig(smoothness=-1.0))
+
+
+def _sphere_cap(h: int, w: int) -> Tensor:
+    """(h, w, 3) unit normals of a sphere cap facing the camera (n_z < 0), ≈ 3° apart."""
+    y, x = torch.meshgrid(torch.linspace(-0.35, 0.35, h, dtype=torch.float64),
+                          torch.linspace(-0.35, 0.35, w, dtype=torch.float64), indexing="ij")
+    return torch.stack([x, y, -(1 - x * x - y * y).sqrt()], -1)
+
+
+def test_propagation_moves_pixels_out_of_a_wrong_basin() -> None:
+    """_propagate: pixels started at a wrong normal take their neighbours' and keep the lower loss;
+    pixels already right do not move."""
+    from polarshape.brdf.fmbrdf import build_tables, fmbrdf_stokes
+    from polarshape.recover.joint import _NormalProblem, _neighbour_index, _propagate, _refine_normals
+    from polarshape.recover.reflectometry import Observations
+
+    h = w = 12
+    truth_img = _sphere_cap(h, w)
+    pixels = torch.ones(h, w, dtype=torch.bool)
+    truth = truth_img[pixels]
+    k = 8
+    t = torch.linspace(0.2, 0.9, k, dtype=torch.float64)
+    phi = torch.arange(k, dtype=torch.float64) * 2.4
+    lights = torch.stack([t.sin() * phi.cos(), t.sin() * phi.sin(), -t.cos()], -1)
+    view = torch.tensor([0.0, 0.0, -1.0], dtype=torch.float64).expand(truth.shape[0], 3)
+    material = dict(ior=1.5, alpha=0.3, beta=2.0, kappa=0.0)
+    s = fmbrdf_stokes(truth[:, None], lights[None], view[:, None], k_s=1.0, k_b=0.5, **material)
+    obs = Observations(s, torch.ones(s.shape[:2], dtype=s.dtype), lights, torch.ones(k, dtype=s.dtype), view)
+    problem = _NormalProblem(build_tables(**material), obs, 1.0, True, 0.5, True, 1e-3)
+    start_img = truth_img.clone()
+    wrong = torch.zeros(h, w, dtype=torch.bool)
+    wrong[4:7, 4:7] = True
+    start_img[wrong] = torch.nn.functional.normalize(torch.tensor([0.6, 0.5, -0.6], dtype=torch.float64), dim=0)
+    normals = start_img[pixels].clone()
+    r, k_b = problem.residual(normals, obs)
+    loss = problem.loss(r)
+    before = loss.clone()
+    out, _, loss_out, moved = _propagate(problem, normals, k_b, loss, obs, _neighbour_index(pixels), max_iter=0)
+    err = angular_error_deg(out, truth)
+    w_flat = wrong[pixels]
+    assert moved >= int(w_flat.sum())
+    assert float(err[w_flat].max()) < 10.0  # a neighbour's normal (≈ 3–6° off), not the 40°+ start
+    assert float(err[~w_flat].max()) < 1e-9  # right pixels untouched
+    assert bool((loss_out <= before).all()) and float(loss_out[w_flat].sum()) < 0.2 * float(before[w_flat].sum())
+    # and the polish lands on the truth
+    polished, *_ = _refine_normals(problem, out.clone(), obs, max_iter=20)
+    assert float(angular_error_deg(polished, truth).max()) < 0.05
+
+
+def test_fill_unsupported_takes_neighbours_and_leaves_unreachable_pixels() -> None:
+    from polarshape.recover.joint import _fill_unsupported
+
+    h = w = 16
+    truth = _sphere_cap(h, w)
+    pixels = torch.ones(h, w, dtype=torch.bool)
+    pixels[:, 13] = False  # columns 14-15 form a separate component
+    supported = torch.ones(h, w, dtype=torch.bool)
+    supported[5:9, 5:9] = False  # a hole inside the object
+    supported[:, 14:] = False  # a component with no supported pixel at all
+    garbage = truth.clone()
+    garbage[~supported] = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)  # back-facing nonsense
+    k_b = torch.full((h, w), 0.5, dtype=torch.float64)
+    k_b[~supported] = 7.0
+    normals, albedo, filled = _fill_unsupported(garbage, k_b, pixels, supported)
+    assert torch.equal(filled, pixels & ~supported & (torch.arange(w) < 13))
+    assert float(angular_error_deg(normals[filled], truth[filled]).max()) < 8.0  # ≤ two grid steps
+    torch.testing.assert_close(normals[filled].norm(dim=-1), torch.ones(int(filled.sum()), dtype=torch.float64))
+    torch.testing.assert_close(albedo[filled], torch.full((int(filled.sum()),), 0.5, dtype=torch.float64))
+    assert torch.equal(normals[supported], garbage[supported])
+    assert torch.equal(normals[:, 14:], garbage[:, 14:])  # unreachable: unchanged
+
+
+@pytest.mark.slow
+def test_checker_textured_sphere_propagation_and_fill() -> None:
+    """An albedo texture (checker, 5:1 contrast) under 9 distant lights: blocks straddling a texture
+    edge lose their observations (mixed sites) and get their neighbours' normal; propagation pulls
+    pixels out of wrong basins. Measured at 64²: 0.75° mean, 3 pixels > 10° (without propagation
+    0.94°, 17; before both: 2.5° mean on the 128² version, 233 pixels > 10°)."""
+    d = yaml.safe_load((REPO / "configs" / "scenes" / "textured.yaml").read_text())
+    lights = yaml.safe_load((REPO / "configs" / "scenes" / "sphere.yaml").read_text())["lights"]
+    d.update(lights=lights, objects=d["objects"][:1])  # distant lights, no backdrop
+    n = 64
+    d["camera"].update(width=2 * n, height=2 * n, pixel_size_m=1.2e-4 * 128 / n, pixel_format="PolarizeMono12")
+    capture = SimulatedCamera(parse_scene_config(d), seed=0).render_capture(progress=False)
+    gt = torch.from_numpy(capture.ground_truth["normals"]).double()
+    errors = {}
+    for propagate in (True, False):
+        result = recover_capture(capture, RecoveryConfig(propagate=propagate))
+        m = result.mask & torch.isfinite(gt).all(-1)
+        errors[propagate] = angular_error_deg(result.normals.double()[m], gt[m])
+        assert result.filled is not None and int(result.filled.sum()) > 20
+        assert not bool((result.filled & ~result.mask).any())
+        assert any(s.startswith("fill:") for s in result.skipped), result.skipped
+        assert bool(torch.isfinite(result.normals[result.mask]).all())
+    assert float(errors[True].mean()) <= 1.0, float(errors[True].mean())
+    assert int((errors[True] > 10).sum()) * 3 <= int((errors[False] > 10).sum()), (
+        int((errors[True] > 10).sum()), int((errors[False] > 10).sum()))
