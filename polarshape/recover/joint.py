@@ -305,7 +305,8 @@ def _propagate(
         normals, k_b, loss: (P, 3), (P,), (P,) current per-pixel solution and its loss (updated in place).
         obs: observations of the P pixels.
         neighbours: (P, 8) from :func:`_neighbour_index`.
-        passes: propagation rounds (each reaches one pixel further).
+        passes: propagation rounds (each reaches at least one pixel further). Only neighbours whose
+            normal differs from the pixel's by > 5° are tried (closer ones are in the same basin).
 
     Returns:
         normals, k_b, loss, and the number of pixels that switched.
