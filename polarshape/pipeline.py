@@ -25,7 +25,8 @@ existing result only with ``overwrite``:
 - ``albedo.npy`` / ``albedo.png`` (per-pixel body albedo or Lambertian albedo, when estimated);
 - ``depth.npy`` (H, W) float32 camera-frame z, NaN outside the mask; ``mesh.ply`` / ``mesh.obj``
   (vertex normals, vertex colours from the albedo); ``mesh_poisson.ply`` (optional);
-- ``mask.png``; ``params.json`` (model, parameters, losses, timings per stage, skipped steps,
+- ``mask.png``; ``filled.png`` (FMBRDF recovery: mask pixels with fewer than 3 usable
+  observations, whose normal was filled in from their neighbours); ``params.json`` (model, parameters, losses, timings per stage, skipped steps,
   metrics); ``config.yaml`` (the validated configuration); ``error_map.npy`` (degrees, with ground
   truth); the report; ``capture/`` (a simulated or session capture, when kept).
 """
@@ -104,6 +105,8 @@ class RecoveryOutcome:
         history: per-iteration records (losses).
         timings: seconds per recovery sub-step.
         skipped: what the recovery left out, with the reason.
+        filled: (H, W) bool mask pixels whose normal came from their neighbours (fewer than 3 usable
+            observations), or None (the ``lambertian`` model leaves such pixels invalid instead).
     """
 
     normals: np.ndarray
@@ -116,6 +119,7 @@ class RecoveryOutcome:
     history: list[dict[str, Any]] = field(default_factory=list)
     timings: dict[str, float] = field(default_factory=dict)
     skipped: list[str] = field(default_factory=list)
+    filled: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -371,6 +375,7 @@ def _joint_recovery(inputs: RecoveryInputs, config: RunConfig, device: str, dtyp
         history=list(result.history),
         timings={str(k): float(v) for k, v in dict(result.timings).items()},
         skipped=list(result.skipped),
+        filled=None if result.filled is None else _numpy(result.filled).astype(bool),
     )
 
 
@@ -658,6 +663,8 @@ def _run_stages(
             log.skip("export", "normals.exr: export.exr is false")
         write_npy(depth.astype(np.float32), work / "depth.npy")
         write_image(work / "mask.png", np.where(outcome.mask, 255, 0).astype(np.uint8))
+        if outcome.filled is not None:
+            write_image(work / "filled.png", np.where(outcome.filled, 255, 0).astype(np.uint8))
         if outcome.albedo is not None:
             write_npy(outcome.albedo.astype(np.float32), work / "albedo.npy")
             finite = outcome.albedo[np.isfinite(outcome.albedo)]
@@ -705,6 +712,7 @@ def _run_stages(
             "superpixels_hw": [h, w],
             "projection": projection,
             "mask_pixels": int(outcome.mask.sum()),
+            "filled_pixels": None if outcome.filled is None else int(outcome.filled.sum()),
             "has_polarisation": bool(inputs.has_polarisation),
         },
         "integration": {

@@ -120,6 +120,7 @@ def test_end_to_end_simulated_capture(simulated_run: tuple[Path, dict]) -> None:
     exr, _ = read_exr(out / "normals.exr")
     assert np.allclose(exr[mask], normals[mask])
     assert read_image(out / "mask.png").astype(bool).sum() == mask.sum()
+    assert not (out / "filled.png").exists() and params["capture"]["filled_pixels"] is None  # lambertian: no fill
 
     # ground truth: normals and scale/offset-aligned depth
     metrics = params["metrics"]
@@ -387,22 +388,28 @@ def test_fmbrdf_model_goes_through_the_joint_recovery(capture_config: Path, smal
         mask = inputs.mask
         normals = torch.from_numpy(truth).where(mask[..., None], torch.tensor(float("nan")))
         observed = torch.rand(inputs.num_lights, 3, *mask.shape)
+        filled = mask & (torch.arange(mask.shape[1]) % 7 == 0)  # "no data here, filled from neighbours"
+        seen["filled"] = filled.numpy()
         return RecoveryResult(
             normals=normals, albedo=torch.where(mask, 0.4, float("nan")), params={"ior": torch.tensor(1.5), "alpha": 0.25},
             model="fmbrdf", mask=mask, rendered=observed * 0.9, observed=observed,
             history=[{"iteration": 1, "loss": torch.tensor(0.01)}], timings={"reflectometry": 0.5, "joint": 1.0},
-            skipped=["kappa: fixed at 0"],
+            skipped=["kappa: fixed at 0"], filled=filled,
         )
 
     monkeypatch.setattr("polarshape.recover.joint.recover_inputs", recover_inputs)
 
     config = _load(capture_config)
     config = config.model_copy(update={
-        "recovery": config.recovery.model_copy(update={"model": "fmbrdf", "max_outer_iterations": 7}),
+        "recovery": config.recovery.model_copy(update={"model": "fmbrdf", "max_outer_iterations": 7, "propagate": False}),
         "report": config.report.model_copy(update={"enabled": True}),
     })
     params = run_pipeline(config, tmp_path / "res").params
     assert seen["config"].model == "fmbrdf" and seen["config"].max_outer_iterations == 7
+    assert seen["config"].propagate is False
+    filled_png = read_image(tmp_path / "res" / "filled.png").astype(bool)
+    assert np.array_equal(filled_png, seen["filled"]) and seen["filled"].sum() > 10
+    assert params["capture"]["filled_pixels"] == int(seen["filled"].sum())
     assert seen["config"].device == "cpu" and seen["mask"].sum() == params["capture"]["mask_pixels"]
     assert params["model"] == "fmbrdf" and params["params"] == {"ior": 1.5, "alpha": 0.25}
     assert params["metrics"]["normals"]["mean_deg"] < 1e-3  # the returned normals are the result
