@@ -535,6 +535,43 @@ class _State:
     k_b: Tensor  # (H, W)
 
 
+#: Lobe widths tried by :func:`_profile_alpha` (as the reflectometry grid search).
+_ALPHA_GRID = (0.03, 0.06, 0.12, 0.25, 0.5, 0.9, 1.5)
+
+
+def _profile_alpha(normals: Tensor, obs: Observations, params: GlobalParams, per_pixel: bool, delta: float) -> GlobalParams:
+    """Starting α for intensity-only data: each grid α scored after a few normal iterations.
+
+    Without polarisation nothing but the lobe ties the normals to the material, and the initial
+    (Lambertian) normals lean toward the highlights: scored at those normals a broad lobe wins, the
+    fit then drops the specular term (k_s → 0) and never recovers it (measured on a 56² sphere,
+    α 0.3, no polariser: α 0.97, β 6, k_s 0, 3.2° mean error). Scoring each α after the normals
+    of the subsample have moved to it (4 LM iterations) ranks the lobes as the data do.
+
+    Args:
+        normals: (P, 3) subsample normals; obs: its observations (intensity only).
+        params: current parameters (all but α kept).
+        per_pixel: per-pixel body albedo.
+        delta: Huber threshold.
+
+    Returns:
+        ``params`` with the best α of :data:`_ALPHA_GRID`.
+    """
+    best = (math.inf, params.alpha)
+    for a in _ALPHA_GRID:
+        trial = GlobalParams(**{**vars(params), "alpha": a})
+        start = fit_reflectance(normals, obs, init=trial, per_pixel_albedo=per_pixel, polarised=False, delta=delta,
+                                grid_search=False, max_iter=0, n_grid=33)
+        tables = build_tables(ior=trial.ior, alpha=a, beta=trial.beta, kappa=trial.kappa, device=normals.device, n_grid=33)
+        problem = _NormalProblem(tables, obs, start.params.k_s, per_pixel, start.params.k_b, False, delta)
+        _, _, loss, _ = _refine_normals(problem, normals.clone(), obs, max_iter=4)
+        total = float(loss.sum())
+        if total < best[0]:
+            best = (total, a)
+    logger.info("intensity-only: α %.3g from the profiled grid", best[1])
+    return GlobalParams(**{**vars(params), "alpha": best[1]})
+
+
 def _fit_level(
     inputs: RecoveryInputs, normals: Tensor, params: GlobalParams, config: RecoveryConfig, *, fit_globals: bool,
     fit_kappa: bool | None, history: list[dict], timings: dict[str, float], skipped: list[str], level: int,
@@ -556,9 +593,13 @@ def _fit_level(
     for it in tqdm(range(outer), desc=f"level {level}", unit="iteration", disable=not config.progress):
         if fit_globals:
             t0 = time.perf_counter()
+            grid = it == 0 and level_is_first(history)
+            if grid and not polarised:
+                params = _profile_alpha(n[sub_idx], obs.select(sub_idx), params, config.per_pixel_albedo, delta)
+                grid = False
             fit = fit_reflectance(
                 n[sub_idx], obs.select(sub_idx), init=params, per_pixel_albedo=config.per_pixel_albedo,
-                fit_kappa=bool(fit_kappa), polarised=polarised, delta=delta, grid_search=(it == 0 and level_is_first(history)),
+                fit_kappa=bool(fit_kappa), polarised=polarised, delta=delta, grid_search=grid,
                 max_iter=12 if it == 0 else 4 if it == 1 else 2,
                 # the initial (Lambertian) normals are biased by highlights: fit the lobe width first,
                 # free μ and β once the normals have moved to the model
@@ -713,7 +754,8 @@ def recover_inputs(inputs: RecoveryInputs, config: RecoveryConfig = RecoveryConf
     if model == "auto":
         model = _choose_model(cropped, n0, albedo0, skipped)
     if model == "fmbrdf" and not cropped.has_polarisation:
-        skipped.append("polarisation: s1 = s2 = 0 everywhere (no polariser): intensity-only fit")
+        skipped.append("polarisation: no linear polarisation above the noise (no polariser or an unpolarised "
+                       "scene): intensity-only fit")
 
     if model == "lambertian":
         state = _State(GlobalParams(), n0, albedo0)

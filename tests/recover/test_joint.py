@@ -363,3 +363,24 @@ def test_checker_textured_sphere_propagation_and_fill() -> None:
     assert float(errors[True].mean()) <= 1.0, float(errors[True].mean())
     assert int((errors[True] > 10).sum()) * 3 <= int((errors[False] > 10).sum()), (
         int((errors[True] > 10).sum()), int((errors[False] > 10).sum()))
+
+
+@pytest.mark.slow
+def test_camera_without_polariser_gives_an_intensity_only_fit(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A camera with no polariser array (every site sees ½ s0): preprocessing finds no polarisation,
+    the FMBRDF fit runs on intensity alone and says so, and still beats Lambertian PS clearly
+    (measured at 56², α 0.3: 0.24° against 3.43°; before α was profiled over the normals the
+    intensity-only fit dropped the lobe, k_s → 0: 3.18°)."""
+    import polarshape.acquisition.simulated as simulated
+
+    monkeypatch.setattr(simulated, "mosaic_radiance", lambda stokes, angle_map: 0.5 * stokes[..., 0, :, :])
+    capture = _simulate("sphere", 56, 0.3)
+    assert not preprocess_capture(capture).has_polarisation
+    result = recover_capture(capture, RecoveryConfig(fit_kappa=False))
+    lamb = recover_capture(capture, RecoveryConfig(model="lambertian"))
+    assert any(s.startswith("polarisation: no linear polarisation") for s in result.skipped), result.skipped
+    err, count = _errors(result, capture)
+    err_l, _ = _errors(lamb, capture)
+    assert count > 1000 and err <= 1.0 and 3 * err <= err_l, (err, err_l, result.params)
+    assert result.params["k_s"] > 0 and abs(result.params["alpha"] - 0.3) <= 0.1, result.params
+    assert bool(torch.isfinite(result.normals[result.mask]).all())

@@ -177,3 +177,29 @@ def test_16_bit_frames_of_a_12_bit_adc_saturate_at_65520() -> None:
     inp = preprocess_capture(dataclasses.replace(cap, spec=spec, frames=frames), demosaic="superpixel")
     assert bool(inp.saturated[1, 2, 3]) and not bool(inp.valid[1, 2, 3])
     assert int(inp.saturated.sum()) == 1
+
+
+def test_polarisation_signal_tells_noise_from_polarisation() -> None:
+    """Noise alone (a camera without polariser) leaves |s1, s2| far above the quantisation; the
+    coherence test still calls it unpolarised, and a weakly polarised (DoLP 2 %) smooth field
+    polarised (measured ratios 0.014 and 1.04; threshold 0.25)."""
+    from polarshape.recover.preprocess import POLARISATION_SIGNAL_MIN, polarisation_signal
+
+    gen = torch.Generator().manual_seed(0)
+    k, h, w = 4, 40, 40
+    y, x = torch.meshgrid(torch.linspace(-1, 1, h, dtype=torch.float64), torch.linspace(-1, 1, w, dtype=torch.float64),
+                          indexing="ij")
+    s0 = 0.4 + 0.2 * x  # smooth shading
+    valid = torch.ones(k, h, w, dtype=torch.bool)
+    sigma = 0.004  # per-site noise, fraction of full scale (≈ 16 counts at 12 bits)
+    for dolp, expect in ((0.0, False), (0.02, True)):
+        phi = torch.atan2(y, x)  # smooth angle of polarisation
+        s1, s2 = dolp * s0 * torch.cos(2 * phi), dolp * s0 * torch.sin(2 * phi)
+        angles = torch.tensor([0.0, 45.0, 90.0, 135.0], dtype=torch.float64).deg2rad()
+        sites = 0.5 * (s0 + s1 * torch.cos(2 * angles)[:, None, None] + s2 * torch.sin(2 * angles)[:, None, None])
+        sites = sites.expand(k, 4, h, w) + sigma * torch.randn(k, 4, h, w, generator=gen, dtype=torch.float64)
+        linear = torch.stack([sites[:, 0] - sites[:, 2], sites[:, 1] - sites[:, 3]], 1)  # super-pixel estimate
+        assert float(linear.abs().max()) > 4 / 4095  # the old "s1 = s2 = 0" test would call both polarised
+        ratio = polarisation_signal(linear, sites, valid)
+        assert (ratio >= POLARISATION_SIGNAL_MIN) == expect, (dolp, ratio)
+    assert polarisation_signal(torch.zeros(1, 2, 8, 8), torch.zeros(1, 4, 8, 8), torch.zeros(1, 8, 8, dtype=torch.bool)) == 0.0
