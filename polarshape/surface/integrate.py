@@ -144,13 +144,21 @@ def _check_camera(
     raise ValueError(f"projection must be 'orthographic' or 'perspective'; got {projection!r}")
 
 
+#: Default slope cap: normals tilted more than ≈ 87° from the line of sight (n·r̂ > −0.05) count as
+#: grazing, slope ≤ |n_xy| / 0.05 ≈ 20. Such estimates are unreliable (a super-pixel there spans a
+#: large depth range) and, uncapped, a handful of them dominates the least-squares integration:
+#: measured on a recovered checker-textured sphere (4 such normals among 6520), depth RMS 8.5 mm
+#: of a 10 mm range with a cap at 0.001, 0.80 mm at 0.05; ground-truth spheres are unchanged.
+GRAZING_EPS = 0.05
+
+
 def surface_gradients(
     normals: Any,
     *,
     projection: Projection = "orthographic",
     pixel_size: float = 1.0,
     K: Any | None = None,
-    grazing_eps: float = 1e-3,
+    grazing_eps: float = GRAZING_EPS,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]:
     """Per-pixel gradients of the integrated field, derived from the normals (see module docstring).
 
@@ -160,7 +168,8 @@ def surface_gradients(
         pixel_size: metres per pixel (orthographic).
         K: (3, 3) intrinsics at this resolution (perspective).
         grazing_eps: normals with n·r̂ > −grazing_eps (grazing or facing away; r̂ the unit ray) are
-            clamped to n·r̂ = −grazing_eps, which caps the slope instead of dividing by ~0.
+            clamped to n·r̂ = −grazing_eps, which caps the slope instead of dividing by ~0
+            (default :data:`GRAZING_EPS`).
 
     Returns:
         (g_u, g_v, clamped): g_u = ∂z/∂u, g_v = ∂z/∂v in metres per pixel (orthographic) or
@@ -406,7 +415,7 @@ def integrate_normals(
     rtol: float = 1e-8,
     min_component_size: int = 1,
     unit_tol: float = 1e-3,
-    grazing_eps: float = 1e-3,
+    grazing_eps: float = GRAZING_EPS,
     report: IntegrationReport | None = None,
 ) -> NDArray[np.float64]:
     """Integrate a camera-frame normal map into a depth map (module docstring: maths and gauge).
