@@ -26,8 +26,8 @@ existing result only with ``overwrite``:
 - ``depth.npy`` (H, W) float32 camera-frame z, NaN outside the mask; ``mesh.ply`` / ``mesh.obj``
   (vertex normals, vertex colours from the albedo); ``mesh_poisson.ply`` (optional);
 - ``mask.png``; ``filled.png`` (FMBRDF recovery: mask pixels with fewer than 3 usable
-  observations, whose normal was filled in from their neighbours); ``params.json`` (model, parameters, losses, timings per stage, skipped steps,
-  metrics); ``config.yaml`` (the validated configuration); ``error_map.npy`` (degrees, with ground
+  observations, whose normal was filled in from their neighbours); ``params.json`` (model,
+  parameters, losses, timings per stage, skipped steps, metrics); ``config.yaml`` (the validated configuration); ``error_map.npy`` (degrees, with ground
   truth); the report; ``capture/`` (a simulated or session capture, when kept).
 """
 

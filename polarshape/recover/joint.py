@@ -48,6 +48,7 @@ from polarshape.io.capture import Capture
 from polarshape.recover.photometric import robust_lambertian_ps
 from polarshape.recover.preprocess import RecoveryInputs, crop_inputs, preprocess_capture
 from polarshape.recover.reflectometry import (
+    ALPHA_GRID,
     GlobalParams,
     Observations,
     _channel_weights,
@@ -276,6 +277,10 @@ def _refine_normals_chunked(
             max(q[3] for q in parts))
 
 
+#: (dy, dx) offsets of the 8-neighbourhood.
+_NEIGHBOURS_8 = tuple((dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if (dy, dx) != (0, 0))
+
+
 def _neighbour_index(pixels: Tensor) -> Tensor:
     """(P, 8) flat indices (row-major over ``pixels`` (H, W) True) of each pixel's 8 neighbours
     inside ``pixels``; −1 where a neighbour is outside."""
@@ -283,8 +288,7 @@ def _neighbour_index(pixels: Tensor) -> Tensor:
     flat = torch.full((h, w), -1, dtype=torch.int64, device=pixels.device)
     flat[pixels] = torch.arange(int(pixels.sum()), device=pixels.device)
     padded = F.pad(flat, (1, 1, 1, 1), value=-1)
-    cols = [padded[1 + dy:1 + dy + h, 1 + dx:1 + dx + w][pixels]
-            for dy in (-1, 0, 1) for dx in (-1, 0, 1) if (dy, dx) != (0, 0)]
+    cols = [padded[1 + dy:1 + dy + h, 1 + dx:1 + dx + w][pixels] for dy, dx in _NEIGHBOURS_8]
     return torch.stack(cols, -1)
 
 
@@ -487,7 +491,6 @@ def _lambertian(inputs: RecoveryInputs, pixels: Tensor) -> tuple[Tensor, Tensor]
 
 #: Usable observations a pixel needs for its own normal (2 DoF + its albedo; photometric stereo's 3).
 _MIN_OBSERVATIONS = 3
-_NEIGHBOURS_8 = tuple((dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if (dy, dx) != (0, 0))
 
 
 def _fill_unsupported(normals: Tensor, k_b: Tensor, pixels: Tensor, supported: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -535,10 +538,6 @@ class _State:
     k_b: Tensor  # (H, W)
 
 
-#: Lobe widths tried by :func:`_profile_alpha` (as the reflectometry grid search).
-_ALPHA_GRID = (0.03, 0.06, 0.12, 0.25, 0.5, 0.9, 1.5)
-
-
 def _profile_alpha(normals: Tensor, obs: Observations, params: GlobalParams, per_pixel: bool, delta: float) -> GlobalParams:
     """Starting α for intensity-only data: each grid α scored after a few normal iterations.
 
@@ -555,15 +554,15 @@ def _profile_alpha(normals: Tensor, obs: Observations, params: GlobalParams, per
         delta: Huber threshold.
 
     Returns:
-        ``params`` with the best α of :data:`_ALPHA_GRID`.
+        ``params`` with the best α of :data:`polarshape.recover.reflectometry.ALPHA_GRID`.
     """
     best = (math.inf, params.alpha)
-    for a in _ALPHA_GRID:
-        trial = GlobalParams(**{**vars(params), "alpha": a})
-        start = fit_reflectance(normals, obs, init=trial, per_pixel_albedo=per_pixel, polarised=False, delta=delta,
-                                grid_search=False, max_iter=0, n_grid=33)
-        tables = build_tables(ior=trial.ior, alpha=a, beta=trial.beta, kappa=trial.kappa, device=normals.device, n_grid=33)
-        problem = _NormalProblem(tables, obs, start.params.k_s, per_pixel, start.params.k_b, False, delta)
+    for a in ALPHA_GRID:
+        tables = build_tables(ior=params.ior, alpha=a, beta=params.beta, kappa=params.kappa, device=normals.device,
+                              n_grid=33)
+        surf, body = render_parts(tables, normals, obs)
+        k_s, k_b = solve_albedos(surf, body, obs, per_pixel=per_pixel, polarised=False)
+        problem = _NormalProblem(tables, obs, float(k_s), per_pixel, float(k_b.median()), False, delta)
         _, _, loss, _ = _refine_normals(problem, normals.clone(), obs, max_iter=4)
         total = float(loss.sum())
         if total < best[0]:

@@ -275,9 +275,15 @@ def preprocess_capture(
     return out
 
 
+def _site_redundancy(sites: Tensor) -> Tensor:
+    """(K, H, W) d = (I0 + I90) − (I45 + I135) of site intensities (K, 4, H, W) at 0°, 45°, 90°, 135°:
+    both sums are s0, so d is noise plus whatever differs between the four sites (an edge)."""
+    return (sites[:, 0] + sites[:, 2]) - (sites[:, 1] + sites[:, 3])
+
+
 #: :func:`polarisation_signal` at or above this: the capture is polarised. Measured (12-bit, shot and
-#: read noise): no polariser 0.02–0.10 (sphere, shiny and rough blob); polarising materials 0.79
-#: (rough sphere, α 0.8) to 6.3 (α 0.3), official_sphere128 1.25, mitsuba_sphere_a020 15.7.
+#: read noise; ``python benchmarks/recovery_cases.py signal``): no polariser 0.02–0.11; polarising
+#: materials 0.77 (rough sphere, α 0.8) to 6.7, official_sphere128 1.25, mitsuba_sphere_a020 15.7.
 POLARISATION_SIGNAL_MIN = 0.25
 
 
@@ -301,7 +307,7 @@ def polarisation_signal(linear: Tensor, sites: Tensor, valid: Tensor) -> float:
     Returns:
         The ratio (≥ 0 in practice; inf for noise-free polarised data, 0 without valid pairs).
     """
-    d2 = ((sites[:, 0] + sites[:, 2]) - (sites[:, 1] + sites[:, 3])).to(torch.float64) ** 2
+    d2 = _site_redundancy(sites).to(torch.float64) ** 2
     lin = linear.to(torch.float64)
     num, den = 0.0, 0.0
     for a, b, va, vb, da, db in (
@@ -337,7 +343,7 @@ def mixed_superpixels(sites: Tensor, usable: Tensor, *, n_sigma: float | None = 
     if n_sigma is None:
         return torch.zeros_like(usable)
     s0 = 0.5 * sites.sum(1)
-    d = ((sites[:, 0] + sites[:, 2]) - (sites[:, 1] + sites[:, 3])) / torch.sqrt(s0.clamp_min(0.0) + 1e-3)
+    d = _site_redundancy(sites) / torch.sqrt(s0.clamp_min(0.0) + 1e-3)
     v = d[usable]
     if v.numel() < 16:
         return torch.zeros_like(usable)

@@ -95,6 +95,10 @@ class Observations:
         return Observations(self.stokes[index], self.weight[index], lights, irr, self.view[index])
 
 
+#: Lobe widths α of the coarse grid search that starts a fit (where the specular lobe is).
+ALPHA_GRID: tuple[float, ...] = (0.03, 0.06, 0.12, 0.25, 0.5, 0.9, 1.5)
+
+
 @dataclass
 class GlobalParams:
     """Material parameters shared by all pixels (spec §2). ``k_b`` is the global (or median per-pixel) body albedo."""
@@ -421,7 +425,7 @@ def fit_reflectance(
         if grid_search:
             # α decides where the specular lobe is; a coarse table (n_grid 33) is enough to rank them
             best = (math.inf, p.alpha)
-            for a in (0.03, 0.06, 0.12, 0.25, 0.5, 0.9, 1.5):
+            for a in ALPHA_GRID:
                 loss = loss_of(evaluate({**current(), "alpha": a}, None, n_grid=33)[0])
                 if loss < best[0]:
                     best = (loss, a)
