@@ -53,7 +53,7 @@ CASES = [("sphere", 0.05), ("sphere", 0.3), ("sphere", 0.8), ("blob", 0.05), ("b
 #: the 2×2 average of differently oriented sites depolarises (μ comes out high at 40²), so it is
 #: tested at 80². The shiny lobe (α = 0.05: about 3° wide) must span several super-pixels: on a 56²
 #: sphere the normal turns ≈ 3.2° per super-pixel and the interpolated Stokes broaden the lobe
-#: (measured α: 0.0572 at 56², 0.0553 at 84², 0.0530 at 112²; with the true normals 0.0556, 0.0525,
+#: (measured α: 0.0566 at 56², 0.0553 at 84², 0.0532 at 112²; with the true normals 0.0556, 0.0525,
 #: 0.0514), so the shiny sphere is tested at 112².
 SIZES = {("sphere", 0.05): 112, "sphere": 56, "blob": 80}
 #: Exposure (µs) per roughness: at the scenes' 10 ms the shiny lobe saturates over its whole core and
