@@ -21,6 +21,7 @@ import time
 
 import numpy as np
 
+from polarshape.cameras import OrthographicCamera
 from polarshape.surface.integrate import IntegrationReport, integrate_normals
 
 
@@ -63,7 +64,8 @@ def run(case: str, size: int, method: str, solver: str, max_iter: int) -> str:
     n, mask, z, pixel = sphere(size) if case == "sphere" else occlusion(size)
     report = IntegrationReport()
     t0 = time.perf_counter()
-    depth = integrate_normals(n, mask, pixel_size=pixel, method=method, solver=solver, max_iter=max_iter, report=report)
+    camera = OrthographicCamera(size, size, pixel, even=False)
+    depth = integrate_normals(n, mask, camera=camera, method=method, solver=solver, max_iter=max_iter, report=report)
     seconds = time.perf_counter() - t0
     err = rmse_percent(depth, z, mask)
     return (

@@ -5,7 +5,7 @@ FMBRDF μ 1.5, α 0.25, β 2, 12-bit, shot + read noise; K lights on a spiral 10
 and reports, per method, wall time and mean normal error (degrees, over the mask), plus parameter
 errors and the error after each stage (history):
 
-- ``polarshape``: :func:`polarshape.recover.recover_capture` (coarse-to-fine alternation of
+- ``polarshape``: :func:`polarshape.normals.recover_capture` (coarse-to-fine alternation of
   per-pixel Levenberg–Marquardt normals and variable-projection global parameters);
 - ``lambertian``: robust Lambertian photometric stereo on s0 (the initial normals);
 - ``adam``: "Adam on the full model", mimicking the paper's released schedule: stages of Adam
@@ -37,7 +37,10 @@ from polarshape.acquisition.simulated import SimulatedCamera
 from polarshape.brdf import build_tables
 from polarshape.io.atomic import atomic_write_bytes
 from polarshape.io.capture import Capture, load_capture
-from polarshape.recover.joint import RecoveryConfig, angular_error_deg, recover_capture
+from polarshape.metrics import angular_error_deg
+from polarshape.normals import initial_normals, recover_capture
+from polarshape.recover.observations import flatten_observations
+from polarshape.recover.options import RecoveryOptions
 from polarshape.recover.preprocess import preprocess_capture
 from polarshape.recover.reflectometry import render_parts
 from polarshape.scene.config import parse_scene_config
@@ -68,7 +71,8 @@ def mean_error(normals: torch.Tensor, capture: Capture) -> float:
 
 def run_polarshape(capture: Capture, model: str, label: str | None = None, **options: object) -> dict:
     t0 = time.perf_counter()
-    result = recover_capture(capture, RecoveryConfig(model=model, **options))
+    pre = {k: options.pop(k) for k in ("demosaic", "sample_at") if k in options}
+    result = recover_capture(capture, RecoveryOptions(model=model, **options), **pre)
     wall = time.perf_counter() - t0
     out = {"method": label or ("polarshape" if model == "fmbrdf" else "lambertian"), "seconds": wall,
            "normal_error_deg": mean_error(result.normals, capture), "timings": result.timings, "skipped": result.skipped}
@@ -83,10 +87,8 @@ def run_adam(capture: Capture, steps: int, alternations: int, budget_s: float, l
     """Adam on the full model (global params, then normals, alternating), error after each stage."""
     inp = preprocess_capture(capture)
     m = inp.mask
-    from polarshape.recover.joint import _flatten, _lambertian  # the same observations and start
-
-    obs = _flatten(inp, m)
-    n0, _ = _lambertian(inp, m)
+    obs = flatten_observations(inp, m)  # the same observations and start as polarshape's
+    n0 = initial_normals(inp).normals
     raw_n = n0[m].clone().requires_grad_(True)  # (P, 3), normalised in the model
     u = {"ior": torch.tensor(1.5, dtype=torch.float64, requires_grad=True),
          "log_alpha": torch.tensor(math.log(0.5), dtype=torch.float64, requires_grad=True),

@@ -7,7 +7,7 @@
     python benchmarks/recovery_cases.py kappa           # can the loss tell κ from model mismatch?
     python benchmarks/recovery_cases.py integration --result DIR   # slope cap on a `polarshape run` result
 
-The simulated captures are the tests' (``tests/recover/test_joint.py::_simulate``: the scene files
+The simulated captures are the tests' (``tests/test_normals.py::_simulate``: the scene files
 of ``configs/scenes`` at n × n super-pixels, 12-bit, shot and read noise), so the figures match
 what the tests assert. ``signal`` and ``kappa`` also use ``../shared/data`` when present.
 Machine-dependent times are printed with the machine; errors are mean angular errors (degrees).
@@ -26,9 +26,9 @@ import torch
 import yaml
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO / "tests" / "recover"))
+sys.path.insert(0, str(REPO / "tests"))
 
-from test_joint import _errors, _simulate  # noqa: E402  (the tests' scenes)
+from test_normals import _errors, _recover, _simulate  # noqa: E402  (the tests' scenes)
 
 import polarshape.acquisition.simulated as simulated  # noqa: E402
 from polarshape.acquisition.simulated import SimulatedCamera  # noqa: E402
@@ -36,12 +36,12 @@ from polarshape.brdf import build_tables  # noqa: E402
 from polarshape.io.capture import Capture, load_capture  # noqa: E402
 from polarshape.imaging.mosaic import split_mosaic  # noqa: E402
 from polarshape.imaging.pixels import counts_to_float  # noqa: E402
-from polarshape.recover.joint import (  # noqa: E402
-    RecoveryConfig, _NormalProblem, _flatten, _huber_delta, _refine_normals, _subsample, angular_error_deg,
-    recover_capture,
-)
+from polarshape.brdf.params import FMBRDFParams  # noqa: E402
+from polarshape.metrics import angular_error_deg  # noqa: E402
+from polarshape.recover.normal_solver import NormalProblem, huber_delta, refine_normals  # noqa: E402
+from polarshape.recover.observations import flatten_observations  # noqa: E402
 from polarshape.recover.preprocess import polarisation_signal, preprocess_capture  # noqa: E402
-from polarshape.recover.reflectometry import GlobalParams, fit_reflectance, objective  # noqa: E402
+from polarshape.recover.reflectometry import fit_reflectance, objective  # noqa: E402
 from polarshape.scene.config import parse_scene_config  # noqa: E402
 
 SHARED = REPO / ".." / "shared" / "data"
@@ -63,7 +63,7 @@ def textured(n: int) -> None:
     print(f"checker-textured sphere, 9 distant lights, {n}²")
     for propagate in (True, False):
         t0 = time.perf_counter()
-        r = recover_capture(capture, RecoveryConfig(propagate=propagate))
+        r = _recover(capture, propagate=propagate)
         m = r.mask & torch.isfinite(gt).all(-1)
         e = angular_error_deg(r.normals.double()[m], gt[m])
         print(f"  propagate {propagate!s:5}: mean {float(e.mean()):.2f} median {float(e.median()):.2f} "
@@ -76,8 +76,8 @@ def no_polariser() -> None:
     try:
         for alpha in (0.3, 0.8):
             capture = _simulate("sphere", 56, alpha)
-            r = recover_capture(capture, RecoveryConfig(fit_kappa=False))
-            lamb = recover_capture(capture, RecoveryConfig(model="lambertian"))
+            r = _recover(capture, fit_kappa=False)
+            lamb = _recover(capture, model="lambertian")
             print(f"sphere 56², α {alpha}, no polariser: FMBRDF intensity-only {_errors(r, capture)[0]:.2f}° "
                   f"(α {r.params['alpha']:.3f}, β {r.params['beta']:.2f}, k_s {r.params['k_s']:.3g}), "
                   f"Lambertian PS {_errors(lamb, capture)[0]:.2f}°")
@@ -91,8 +91,8 @@ def shiny() -> None:
         inputs = preprocess_capture(capture)
         gt = torch.from_numpy(capture.ground_truth["normals"]).float()
         pix = inputs.mask & torch.isfinite(gt).all(-1)
-        known = fit_reflectance(gt[pix], _flatten(inputs, pix), fit_kappa=False, delta=0.01).params
-        r = recover_capture(capture, RecoveryConfig(fit_kappa=False, max_outer_iterations=12))
+        known = fit_reflectance(gt[pix], flatten_observations(inputs, pix), fit_kappa=False, delta=0.01).params
+        r = _recover(capture, fit_kappa=False, max_outer_iterations=12)
         print(f"{kind} {n}², α 0.05 at 1 ms: saturated obs {int(inputs.saturated[:, inputs.mask].sum())}; "
               f"α true normals {known.alpha:.4f}, joint {r.params['alpha']:.4f} (μ {r.params['ior']:.3f}), "
               f"error {_errors(r, capture)[0]:.2f}°")
@@ -119,14 +119,14 @@ def signal() -> None:
             print(f"{name}: {_signal(load_capture(SHARED / name)):.3f}")
 
 
-def _alternate(normals: torch.Tensor, obs, params: GlobalParams, fit_kappa: bool, delta: float, rounds: int):
+def _alternate(normals: torch.Tensor, obs, params: FMBRDFParams, fit_kappa: bool, delta: float, rounds: int):
     normals = normals.clone()
     for _ in range(rounds):
         params = fit_reflectance(normals, obs, init=params, fit_kappa=fit_kappa, delta=delta, grid_search=False,
                                  max_iter=4).params
         tables = build_tables(ior=params.ior, alpha=params.alpha, beta=params.beta, kappa=params.kappa)
-        problem = _NormalProblem(tables, obs, params.k_s, True, params.k_b, True, delta)
-        normals = _refine_normals(problem, normals, obs, max_iter=6)[0]
+        problem = NormalProblem.build(tables, obs.stokes, params.k_s, True, params.k_b, True, delta)
+        normals = refine_normals(problem, normals, obs, max_iter=6)[0]
     return objective(params, normals, obs, delta=delta), params
 
 
@@ -142,20 +142,21 @@ def kappa() -> None:
         if (SHARED / name).is_dir():
             cases.append((name, load_capture(SHARED / name), options))
     for label, capture, options in cases:
-        r = recover_capture(capture, RecoveryConfig(fit_kappa=False, **options))
+        r = _recover(capture, fit_kappa=False, **options)
         inputs = preprocess_capture(capture, **options)
         pix = r.mask & torch.isfinite(r.normals).all(-1)
-        obs, normals = _flatten(inputs, pix), r.normals[pix]
-        idx = _subsample(normals.shape[0], 2048, 0, normals.device)
+        obs, normals = flatten_observations(inputs, pix), r.normals[pix]
+        idx = torch.randperm(normals.shape[0], generator=torch.Generator().manual_seed(0))[:2048].sort().values
         sub_obs, sub_n = obs.select(idx), normals[idx]
-        delta = _huber_delta(obs, inputs.noise_std)
-        start = GlobalParams(**{k: r.params[k] for k in ("ior", "alpha", "beta", "kappa")})
+        delta = huber_delta(obs, inputs.noise_std)
+        start = FMBRDFParams(**{k: r.params[k] for k in ("ior", "alpha", "beta", "kappa")})
         loss0, _ = _alternate(sub_n, sub_obs, start, False, delta, 4)
-        loss1, p1 = _alternate(sub_n, sub_obs, GlobalParams(**{**vars(start), "kappa": 20.0}), True, delta, 4)
+        loss1, p1 = _alternate(sub_n, sub_obs, FMBRDFParams(**{**vars(start), "kappa": 20.0}), True, delta, 4)
         print(f"{label}: κ arm lowers the loss by {100 * (loss0 - loss1) / loss0:.2f} % (κ {p1.kappa:.1f})")
 
 
 def integration(result: Path) -> None:
+    from polarshape.cameras import OrthographicCamera
     from polarshape.surface.integrate import integrate_normals
 
     capture = load_capture(result / "capture")
@@ -165,7 +166,8 @@ def integration(result: Path) -> None:
     pixel = params["integration"]["pixel_size_m"]
     for source, n in (("ground truth", capture.ground_truth["normals"].astype(np.float64)), ("recovered", normals)):
         for eps in (1e-3, 0.02, 0.05, 0.1):
-            depth = integrate_normals(n, np.isfinite(n).all(-1), projection="orthographic", pixel_size=pixel,
+            camera = OrthographicCamera(n.shape[1], n.shape[0], pixel, even=False)
+            depth = integrate_normals(n, np.isfinite(n).all(-1), camera=camera,
                                       reference_depth=float(np.nanmedian(truth)), grazing_eps=eps)
             k = np.isfinite(depth) & np.isfinite(truth)
             diff = depth[k] - truth[k]

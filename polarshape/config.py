@@ -27,11 +27,14 @@ from typing import Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator, model_validator
 
+from polarshape.errors import ConfigError
+from polarshape.recover.options import InitialNormalsOptions, RecoveryOptions
+
 __all__ = [
     "RUN_FORMAT",
     "ConfigError",
     "ExportConfig",
-    "InitialNormalsConfig",
+    "InitialNormalsOptions",
     "InputConfig",
     "IntegrationConfig",
     "MeshConfig",
@@ -46,10 +49,6 @@ __all__ = [
 
 #: Version string of the run-configuration format.
 RUN_FORMAT = "polarshape-run/1"
-
-
-class ConfigError(ValueError):
-    """An invalid run configuration; the message names every bad key path and the fix."""
 
 
 class _Strict(BaseModel):
@@ -142,37 +141,6 @@ class PreprocessConfig(_Strict):
         return self
 
 
-class InitialNormalsConfig(_Strict):
-    """Robust Lambertian photometric stereo on s0: the ``lambertian`` model's result and the initial-normal
-    errors in the report (the FMBRDF recovery starts from its own robust PS: 2 % dark, 3 % outlier)."""
-
-    dark_rel: float = Field(0.05, ge=0.0, lt=1.0, description="shadow threshold relative to the brightest observation")
-    outlier_rel: float = Field(0.25, gt=0.0, le=10.0, description="highlight threshold relative to the fitted shading")
-    noise_std: float = Field(0.0, ge=0.0, description="intensity noise sigma (fraction of full scale)")
-
-
-class RecoveryOptions(_Strict):
-    """Reflectometry and joint refinement (polarshape.recover.joint.RecoveryConfig)."""
-
-    model: Literal["auto", "fmbrdf", "lambertian"] = Field(
-        "auto", description="fmbrdf = Fresnel microfacet BRDF joint fit; lambertian = robust Lambertian PS only; "
-        "auto = fmbrdf unless the data are unpolarised and Lambertian PS explains them"
-    )
-    per_pixel_albedo: bool = True
-    fit_kappa: bool | None = Field(None, description="fit the microfacet correlation kappa (null: the recovery decides)")
-    max_outer_iterations: int = Field(20, ge=1, le=1000)
-    subsample_pixels: int = Field(4096, ge=64, description="pixels used for the material fit")
-    coarse_to_fine: bool = True
-    propagate: bool = Field(
-        True, description="after each per-pixel solve, pixels try their neighbours' normals and keep a better fit "
-        "(escapes per-pixel local minima)"
-    )
-    smoothness: float = Field(
-        0.0, ge=0.0, le=100.0, description="weight of a normal-smoothness prior after the per-pixel fit (0: per-pixel "
-        "maximum likelihood; 0.5: a neighbour weighs half a typical pixel's own data; smooths across creases)"
-    )
-
-
 class IntegrationConfig(_Strict):
     """Normal integration (polarshape.surface.integrate.integrate_normals)."""
 
@@ -231,7 +199,7 @@ class RunConfig(_Strict):
     seed: int = Field(0, ge=0, description="seed of every random choice of the pipeline (subsampling)")
     progress: bool = Field(True, description="progress bars on the terminal")
     preprocess: PreprocessConfig = PreprocessConfig()
-    initial_normals: InitialNormalsConfig = InitialNormalsConfig()
+    initial_normals: InitialNormalsOptions = InitialNormalsOptions()
     recovery: RecoveryOptions = RecoveryOptions()
     integration: IntegrationConfig = IntegrationConfig()
     mesh: MeshConfig = MeshConfig()

@@ -11,7 +11,6 @@ import json
 import logging
 import math
 import time
-from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import cv2
@@ -19,24 +18,18 @@ import numpy as np
 import torch
 from matplotlib import colormaps
 
-from polarshape.brdf import build_tables, fmbrdf_stokes
+from polarshape.brdf import FMBRDFParams, fmbrdf_stokes
 from polarshape.imaging.mosaic import MosaicLayout, mosaic_from_stokes
 from polarshape.imaging.stokes import aolp, dolp
+from polarshape.checks import to_numpy
 from polarshape.io.atomic import atomic_directory
 
 logger = logging.getLogger(__name__)
 
 
-@dataclass(frozen=True)
-class DemoMaterial:
+def demo_material() -> FMBRDFParams:
     """FMBRDF parameters of the demo sphere (spec §2)."""
-
-    ior: float = 1.5
-    k_s: float = 1.0
-    k_b: float = 0.6
-    alpha: float = 0.25
-    beta: float = 2.0
-    kappa: float = 20.0
+    return FMBRDFParams(ior=1.5, alpha=0.25, beta=2.0, kappa=20.0, k_s=1.0, k_b=0.6)
 
 
 def sphere_normals(size: int, dtype: torch.dtype = torch.float32) -> tuple[torch.Tensor, torch.Tensor]:
@@ -51,23 +44,26 @@ def sphere_normals(size: int, dtype: torch.dtype = torch.float32) -> tuple[torch
     return torch.where(mask[..., None], n, torch.zeros_like(n)), mask
 
 
-def render_demo(size: int = 256, light_deg: tuple[float, float] = (35.0, -30.0), material: DemoMaterial = DemoMaterial()) -> dict[str, np.ndarray]:
-    """Render Stokes (H, W, 3), DoLP, AoLP and the raw mosaic of the demo sphere."""
+def render_demo(
+    size: int = 256, light_deg: tuple[float, float] = (35.0, -30.0), material: FMBRDFParams | None = None
+) -> dict[str, np.ndarray]:
+    """Render Stokes (H, W, 3), DoLP, AoLP (H, W), mask (H, W) and the raw mosaic (2H, 2W) of the
+    demo sphere (``material`` default: :func:`demo_material`)."""
+    material = demo_material() if material is None else material
     normals, mask = sphere_normals(size)
     zen, az = (math.radians(a) for a in light_deg)
     light = torch.tensor([math.sin(zen) * math.cos(az), math.sin(zen) * math.sin(az), -math.cos(zen)])
     view = torch.tensor([0.0, 0.0, -1.0])
-    tables = build_tables(ior=material.ior, alpha=material.alpha, beta=material.beta, kappa=material.kappa)
-    stokes = fmbrdf_stokes(normals, light, view, **asdict(material), tables=tables)  # (H, W, 3)
+    stokes = fmbrdf_stokes(normals, light, view, **material.as_kwargs(), tables=material.build_tables())  # (H, W, 3)
     stokes = stokes * mask[..., None]
     chw = stokes.permute(2, 0, 1)
     mosaic = mosaic_from_stokes(chw, MosaicLayout.imx250mzr())  # (2H, 2W)
     return {
-        "stokes": stokes.numpy(),
-        "dolp": (dolp(chw) * mask).numpy(),
-        "aolp": (aolp(chw) * mask).numpy(),
-        "mask": mask.numpy(),
-        "mosaic": mosaic.numpy(),
+        "stokes": to_numpy(stokes),
+        "dolp": to_numpy(dolp(chw) * mask),
+        "aolp": to_numpy(aolp(chw) * mask),
+        "mask": to_numpy(mask),
+        "mosaic": to_numpy(mosaic),
     }
 
 
@@ -80,7 +76,7 @@ def _colour(values: np.ndarray, mask: np.ndarray, cmap: str, vmin: float, vmax: 
 def run_demo(out: str | Path, *, size: int = 256, overwrite: bool = False) -> dict[str, object]:
     """Render and write the demo folder; returns a summary (paths and figures)."""
     t0 = time.perf_counter()
-    material = DemoMaterial()
+    material = demo_material()
     r = render_demo(size, material=material)
     elapsed = time.perf_counter() - t0
     s0, mask = r["stokes"][..., 0], r["mask"]
@@ -92,7 +88,7 @@ def run_demo(out: str | Path, *, size: int = 256, overwrite: bool = False) -> di
         cv2.imwrite(str(tmp / "mosaic.png"), np.round(r["mosaic"] / peak * 65535).astype(np.uint16))
         np.save(tmp / "stokes.npy", r["stokes"].astype(np.float32))
         summary = {
-            "material": asdict(material),
+            "material": material.as_kwargs(),
             "light_zenith_azimuth_deg": [35.0, -30.0],
             "size": size,
             "peak_s0": peak,

@@ -9,9 +9,11 @@ from pathlib import Path
 
 import torch
 
+from polarshape.checks import check_shape
 from polarshape.imaging.demosaic import stokes_from_mosaic
 from polarshape.imaging.mosaic import MosaicLayout
 from polarshape.imaging.pixels import counts_to_float, saturation_mask
+from polarshape.imaging.stokes import aolp, dolp
 from polarshape.io.images import read_image
 
 
@@ -38,24 +40,24 @@ def frame_stats(
 
     The ROI is snapped to even offsets so the 2×2 pattern of ``layout`` (default IMX250MZR) holds.
     """
-    raw = read_image(path)
-    if raw.ndim != 2:
-        raise ValueError(f"{path}: expected a single-channel raw mosaic, got shape {raw.shape}")
+    raw = read_image(path)  # (H, W) sensor counts
+    check_shape(raw, ["H", "W"], str(path), "(a single-channel raw mosaic)")
     if roi is not None:
+        full_wh = raw.shape[::-1]
         x, y, w, h = roi
         x, y = x - x % 2, y - y % 2
         raw = raw[y : y + h - h % 2, x : x + w - w % 2]
         if raw.size == 0:
-            raise ValueError(f"ROI {roi} is empty for a {read_image(path).shape[::-1]} frame")
+            raise ValueError(f"ROI {roi} is empty for a {full_wh} frame")
     sat = saturation_mask(raw, bit_depth)
     img = counts_to_float(raw, bit_depth, black_level, dtype=torch.float64)
     s = stokes_from_mosaic(img, layout or MosaicLayout.imx250mzr(), method="superpixel")  # (3, H/2, W/2)
-    mean = s.reshape(3, -1).mean(-1)
-    s0, s1, s2 = (float(x) for x in mean)
+    mean = s.reshape(3, -1).mean(-1)  # (3,) the mean Stokes vector
+    s0 = float(mean[0])
     return FrameStats(
         mean_s0=s0,
-        mean_dolp=math.hypot(s1, s2) / s0 if s0 > 0 else 0.0,
-        aolp_deg=math.degrees(0.5 * math.atan2(s2, s1)),
+        mean_dolp=float(dolp(mean, dim=0, eps=0.0)) if s0 > 0 else 0.0,
+        aolp_deg=math.degrees(float(aolp(mean, dim=0))),
         saturated_fraction=float(sat.mean()),
         n_superpixels=int(s.shape[-1] * s.shape[-2]),
     )

@@ -24,9 +24,12 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
+import torch
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 
+from polarshape.imaging.stokes import aolp, dolp
+from polarshape.checks import to_numpy
 from polarshape.io.atomic import atomic_path, atomic_write_text
 
 logger = logging.getLogger(__name__)
@@ -47,8 +50,8 @@ class ReportData:
         mask: (H, W) bool.
         observed: (K, 3, H, W) observed Stokes (fraction of full scale).
         rendered: (K, 3, H, W) Stokes of the fitted model, or None.
-        lights: (K, 3) or (K, H, W, 3) unit directions surface → light.
-        irradiance: (K,) or (K, H, W) relative irradiance E.
+        lights: (K, H, W, 3) unit directions surface → light (per pixel, for every light type).
+        irradiance: (K, H, W) relative irradiance E.
         view: (H, W, 3) unit directions surface → camera.
         valid: (K, H, W) bool observations used (not dark, not saturated), or None (= all).
         params: the params.json content so far (model, params, metrics, timings_s, skipped, ...).
@@ -76,16 +79,16 @@ class ReportData:
 
 
 def _dolp(stokes: np.ndarray) -> np.ndarray:
-    """(..., 3, H, W) → (..., H, W) DoLP, NaN where s0 ≤ 0."""
-    s0 = stokes[..., 0, :, :]
-    lin = np.hypot(stokes[..., 1, :, :], stokes[..., 2, :, :])
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return np.where(s0 > 0, lin / s0, np.nan)
+    """(..., 3, H, W) → (..., H, W) DoLP (:func:`polarshape.imaging.stokes.dolp`), NaN where s0 ≤ 0
+    (a figure shows no value there rather than one bounded by an eps)."""
+    rho = to_numpy(dolp(torch.from_numpy(np.ascontiguousarray(stokes)), eps=0.0))
+    return np.where(stokes[..., 0, :, :] > 0, rho, np.nan)
 
 
 def _aolp_deg(stokes: np.ndarray) -> np.ndarray:
-    """(..., 3, H, W) → (..., H, W) AoLP in degrees, (−90, 90], from image x toward image y."""
-    return np.degrees(0.5 * np.arctan2(stokes[..., 2, :, :], stokes[..., 1, :, :]))
+    """(..., 3, H, W) → (..., H, W) AoLP in degrees, (−90, 90], from image x toward image y
+    (:func:`polarshape.imaging.stokes.aolp`)."""
+    return np.degrees(to_numpy(aolp(torch.from_numpy(np.ascontiguousarray(stokes)))))
 
 
 def _angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -116,8 +119,7 @@ def fit_curves(data: ReportData) -> dict[str, np.ndarray]:
     """
     k, _, h, w = data.observed.shape
     normals = np.broadcast_to(data.normals[None], (k, h, w, 3))
-    lights = data.lights if data.lights.ndim == 4 else np.broadcast_to(data.lights[:, None, None, :], (k, h, w, 3))
-    irr = data.irradiance if data.irradiance.ndim == 3 else np.broadcast_to(data.irradiance[:, None, None], (k, h, w))
+    lights, irr = data.lights, data.irradiance  # (K, H, W, 3), (K, H, W)
     use = np.broadcast_to(data.mask[None], (k, h, w)) & np.all(np.isfinite(normals), axis=-1)
     if data.valid is not None:
         use = use & data.valid
@@ -263,11 +265,11 @@ def _panel_residuals(axes: Sequence[Axes], data: ReportData) -> None:
             ax.axis("off")
             ax.text(0.5, 0.5, "no rendering: no residuals", ha="center", va="center")
         return
-    rel, dolp = maps
+    rel, dolp_rms = maps
     top = float(np.nanpercentile(rel, 99)) if np.isfinite(rel).any() else 1.0
     _image(axes[0], rel, "RMS s0 residual / mean s0", cmap="magma", vmin=0.0, vmax=max(top, 1e-6))
-    top = float(np.nanpercentile(dolp, 99)) if np.isfinite(dolp).any() else 1.0
-    _image(axes[1], dolp, "RMS DoLP residual", cmap="magma", vmin=0.0, vmax=max(top, 1e-6))
+    top = float(np.nanpercentile(dolp_rms, 99)) if np.isfinite(dolp_rms).any() else 1.0
+    _image(axes[1], dolp_rms, "RMS DoLP residual", cmap="magma", vmin=0.0, vmax=max(top, 1e-6))
 
 
 def _panel_error(axes: Sequence[Axes], data: ReportData) -> None:

@@ -13,20 +13,14 @@ import torch
 import trimesh
 import yaml
 
-from polarshape.cli_run import add_parsers
+from polarshape.cli.run import add_parsers
 from polarshape.config import ConfigError, parse_run_config
-from polarshape.export import read_exr, read_normal_map_png
+from polarshape.io.export import read_exr, read_normal_map_png
 from polarshape.io.atomic import OutputExistsError
 from polarshape.io.capture import load_capture
 from polarshape.io.images import read_image
-from polarshape.pipeline import (
-    STAGES,
-    PipelineError,
-    angular_error_deg,
-    angular_error_stats,
-    depth_rmse_aligned,
-    run_pipeline,
-)
+from polarshape.metrics import depth_rmse_aligned
+from polarshape.pipeline import STAGES, PipelineError, run_pipeline
 
 REPO = Path(__file__).resolve().parents[1]
 SPHERE = REPO / "configs" / "scenes" / "sphere.yaml"
@@ -204,7 +198,7 @@ def test_refuses_to_overwrite_a_result_or_an_input(capture_config: Path, small_c
 
 
 def test_interrupted_run_leaves_no_half_written_result(capture_config: Path, tmp_path: Path, monkeypatch) -> None:
-    import polarshape.pipeline as pipeline
+    import polarshape.io.results as results
 
     config = _load(capture_config)
     out = tmp_path / "res"
@@ -212,7 +206,7 @@ def test_interrupted_run_leaves_no_half_written_result(capture_config: Path, tmp
     def interrupted(*args: object, **kwargs: object) -> None:
         raise KeyboardInterrupt  # Ctrl-C in the middle of the run, after files were written
 
-    monkeypatch.setattr(pipeline, "write_image", interrupted)  # mask.png, in the export stage
+    monkeypatch.setattr(results, "write_image", interrupted)  # mask.png, in the export stage
     with pytest.raises(KeyboardInterrupt):
         run_pipeline(config, out)
     assert not out.exists()
@@ -221,7 +215,7 @@ def test_interrupted_run_leaves_no_half_written_result(capture_config: Path, tmp
     monkeypatch.undo()
     first = run_pipeline(config, out)
     before = (out / "params.json").read_bytes()
-    monkeypatch.setattr(pipeline, "write_image", interrupted)
+    monkeypatch.setattr(results, "write_image", interrupted)
     with pytest.raises(KeyboardInterrupt):
         run_pipeline(config, out, overwrite=True)
     assert (out / "params.json").read_bytes() == before  # the previous result is intact
@@ -274,40 +268,6 @@ def test_cuda_run_matches_cpu(capture_config: Path, tmp_path: Path) -> None:
 
 
 # --- evaluation helpers ---------------------------------------------------------------------------
-
-
-def test_angular_error_and_stats() -> None:
-    a = np.zeros((2, 3, 3))
-    a[..., 2] = -1.0
-    b = a.copy()
-    t = np.radians(10.0)
-    b[0, 0] = [np.sin(t), 0.0, -np.cos(t)]
-    b[0, 1] = [0.0, 0.0, 1.0]  # opposite: 180°
-    b[1, 2] = np.nan  # missing
-    err = angular_error_deg(a, b)
-    assert err[0, 0] == pytest.approx(10.0) and err[0, 1] == pytest.approx(180.0) and err[1, 1] == 0.0
-    assert np.isnan(err[1, 2])
-    mask = np.ones((2, 3), bool)
-    mask[0, 1] = False
-    err = angular_error_deg(a, b, mask)
-    stats = angular_error_stats(err, reference_pixels=int(mask.sum()))
-    assert stats["pixels"] == 4 and stats["mean_deg"] == pytest.approx(2.5) and stats["median_deg"] == 0.0
-    assert stats["coverage"] == pytest.approx(0.8) and stats["within_5deg"] == pytest.approx(0.75)
-    assert angular_error_stats(np.full((2, 2), np.nan)) == {"pixels": 0}
-    with pytest.raises(ValueError, match=r"\(H, W, 3\)"):
-        angular_error_deg(a, b[..., :2])
-
-
-def test_depth_rmse_is_invariant_to_scale_and_offset() -> None:
-    rng = np.random.default_rng(0)
-    truth = rng.uniform(0.4, 0.5, (20, 20))
-    estimate = 3.0 * truth - 7.0
-    estimate[0, 0] = np.nan
-    exact = depth_rmse_aligned(estimate, truth)
-    assert exact["rmse"] < 1e-12 and exact["scale"] == pytest.approx(1 / 3) and exact["pixels"] == 399
-    noisy = estimate + rng.normal(0.0, 0.03, truth.shape)  # σ 0.01 after scaling by 1/3
-    assert depth_rmse_aligned(noisy, truth)["rmse"] == pytest.approx(0.01, rel=0.15)
-    assert depth_rmse_aligned(noisy, truth, np.zeros((20, 20), bool)) == {"pixels": 0}
 
 
 # --- shared captures (real-format data rendered by other renderers) -------------------------------
@@ -376,28 +336,28 @@ def test_perspective_capture(tmp_path: Path) -> None:
 
 def test_fmbrdf_model_goes_through_the_joint_recovery(capture_config: Path, small_capture: Path, tmp_path: Path,
                                                       monkeypatch) -> None:
-    """The pipeline hands the capture and options to polarshape.recover.joint and uses what it returns
-    (a stand-in recover_inputs here that returns the true normals, so the test does not depend on the fit)."""
-    from polarshape.recover.joint import RecoveryResult
+    """The pipeline hands the preprocessed inputs and options to polarshape.normals.recover_normals and
+    uses what it returns (a stand-in here that returns the true normals, so the test does not depend on the fit)."""
+    from polarshape.normals import NormalsResult
 
     seen: dict = {}
     truth = load_capture(small_capture).ground_truth["normals"]
 
-    def recover_inputs(inputs, config):
-        seen["config"], seen["mask"] = config, inputs.mask.numpy()
+    def recover_normals(inputs, options, initial, *, seed, progress):
+        seen["config"], seen["mask"], seen["device"] = options, inputs.mask.numpy(), inputs.stokes.device.type
         mask = inputs.mask
         normals = torch.from_numpy(truth).where(mask[..., None], torch.tensor(float("nan")))
         observed = torch.rand(inputs.num_lights, 3, *mask.shape)
         filled = mask & (torch.arange(mask.shape[1]) % 7 == 0)  # "no data here, filled from neighbours"
         seen["filled"] = filled.numpy()
-        return RecoveryResult(
+        return NormalsResult(
             normals=normals, albedo=torch.where(mask, 0.4, float("nan")), params={"ior": torch.tensor(1.5), "alpha": 0.25},
-            model="fmbrdf", mask=mask, rendered=observed * 0.9, observed=observed,
-            history=[{"iteration": 1, "loss": torch.tensor(0.01)}], timings={"reflectometry": 0.5, "joint": 1.0},
-            skipped=["kappa: fixed at 0"], filled=filled,
+            model="fmbrdf", mask=mask, rendered=observed * 0.9, observed=observed, initial_normals=normals,
+            initial_valid=mask, history=[{"iteration": 1, "loss": torch.tensor(0.01)}],
+            timings={"reflectometry": 0.5, "joint": 1.0}, skipped=["kappa: fixed at 0"], filled=filled,
         )
 
-    monkeypatch.setattr("polarshape.recover.joint.recover_inputs", recover_inputs)
+    monkeypatch.setattr("polarshape.pipeline.recover_normals", recover_normals)
 
     config = _load(capture_config)
     config = config.model_copy(update={
@@ -410,7 +370,7 @@ def test_fmbrdf_model_goes_through_the_joint_recovery(capture_config: Path, smal
     filled_png = read_image(tmp_path / "res" / "filled.png").astype(bool)
     assert np.array_equal(filled_png, seen["filled"]) and seen["filled"].sum() > 10
     assert params["capture"]["filled_pixels"] == int(seen["filled"].sum())
-    assert seen["config"].device == "cpu" and seen["mask"].sum() == params["capture"]["mask_pixels"]
+    assert seen["device"] == "cpu" and seen["mask"].sum() == params["capture"]["mask_pixels"]
     assert params["model"] == "fmbrdf" and params["params"] == {"ior": 1.5, "alpha": 0.25}
     assert params["metrics"]["normals"]["mean_deg"] < 1e-3  # the returned normals are the result
     assert params["recovery_timings_s"] == {"reflectometry": 0.5, "joint": 1.0}

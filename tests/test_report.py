@@ -41,7 +41,8 @@ def _sphere_data(size: int = 40, rendered: bool = True, error: bool = True) -> R
     }
     return ReportData(
         normals=normals, albedo=albedo, mask=mask, observed=observed,
-        rendered=observed * 1.02 if rendered else None, lights=lights, irradiance=irradiance, view=view,
+        rendered=observed * 1.02 if rendered else None, lights=np.broadcast_to(lights[:, None, None], (4, size, size, 3)),
+        irradiance=np.broadcast_to(irradiance[:, None, None], (4, size, size)), view=view,
         valid=(s0 > 0.01) & mask[None], params=params,
         error_map=np.where(mask, np.abs(x) * 5, np.nan) if error else None, seed=1, max_curve_pixels=3000,
     )

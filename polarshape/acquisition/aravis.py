@@ -30,8 +30,9 @@ from collections import Counter
 from types import TracebackType
 from typing import Any, Literal
 
-from polarshape.acquisition.camera import PIXEL_FORMATS, CameraError, Frame
+from polarshape.acquisition.camera import CameraError, Frame
 from polarshape.acquisition.pixel_formats import format_name_of, payload_size, unpack_mosaic
+from polarshape.imaging.pixels import PIXEL_FORMATS
 
 logger = logging.getLogger(__name__)
 

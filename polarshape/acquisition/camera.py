@@ -12,18 +12,7 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
-#: Pixel formats polarshape understands, by GenICam PFNC name -> (code, bit depth).
-PIXEL_FORMATS: dict[str, tuple[int, int]] = {
-    "PolarizeMono8": (0x81080001, 8),
-    "PolarizeMono12p": (0x810C0047, 12),
-    "PolarizeMono12Packed": (0x810C0006, 12),
-    "PolarizeMono12": (0x81100008, 12),
-    "PolarizeMono16": (0x81100007, 16),
-}
-
-
-class CameraError(RuntimeError):
-    """A camera could not do what was asked; the message names the cause and the fix."""
+from polarshape.errors import CameraError
 
 
 @dataclass(frozen=True)
@@ -76,7 +65,8 @@ class Camera(Protocol):
         gain_db: float | None = None,
         pixel_format: str | None = None,
     ) -> None:
-        """Set exposure (µs), gain (dB) and pixel format (a key of :data:`PIXEL_FORMATS`)."""
+        """Set exposure (µs), gain (dB) and pixel format (a key of
+        :data:`polarshape.imaging.pixels.PIXEL_FORMATS`)."""
 
     def capture(self, timeout_s: float = 5.0) -> Frame:
         """Acquire one frame; raises :class:`CameraError` on timeout or a broken frame."""

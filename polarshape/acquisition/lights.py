@@ -1,6 +1,6 @@
 """Light rigs: switch one light on at a time while a camera captures.
 
-A :class:`LightRig` has ``n_lights`` lights described by :class:`LightSpec` (a direction to the
+A :class:`LightRig` has ``n_lights`` lights described by :class:`RigLight` (a direction to the
 light or a position, camera frame: x right, y down, z forward), and ``switch(index)`` /
 ``all_off()``. Implementations:
 
@@ -37,26 +37,27 @@ from dataclasses import dataclass
 from types import TracebackType
 from typing import Any, Protocol, runtime_checkable
 
+from polarshape.errors import LightRigError
+
 logger = logging.getLogger(__name__)
 
 __all__ = [
     "LightRig",
     "LightRigError",
-    "LightSpec",
     "ManualLightRig",
+    "RigLight",
     "SerialLightRig",
     "SimulatedLightRig",
     "enable_camera_strobe",
 ]
 
 
-class LightRigError(RuntimeError):
-    """A light rig could not do what was asked; the message names the cause and the fix."""
-
-
 @dataclass(frozen=True)
-class LightSpec:
-    """One light of a rig, in the camera frame (OpenCV: x right, y down, z forward).
+class RigLight:
+    """One light of a rig, in the camera frame (OpenCV: x right, y down, z forward), and its label.
+
+    A session file's ``lights`` entries (:class:`polarshape.acquisition.session.LightEntry`, a
+    :class:`polarshape.io.capture.LightSpec` with a name) become rig lights.
 
     Attributes:
         direction: unit vector from the scene *to* a distant light (normalised on creation), or None.
@@ -108,7 +109,7 @@ class LightRig(Protocol):
         """Number of lights."""
 
     @property
-    def lights(self) -> tuple[LightSpec, ...]:
+    def lights(self) -> tuple[RigLight, ...]:
         """Direction/position metadata of every light, index order."""
 
     def switch(self, index: int) -> None:
@@ -133,18 +134,18 @@ def enable_camera_strobe(camera: Any, line: str = "Line1") -> None:
     configure(line, "ExposureActive")
 
 
-def _as_specs(lights: Sequence[LightSpec] | int) -> tuple[LightSpec, ...]:
+def _as_specs(lights: Sequence[RigLight] | int) -> tuple[RigLight, ...]:
     if isinstance(lights, int):
         if lights < 1:
             raise ValueError(f"a light rig needs at least one light; got {lights}")
         # unknown geometry: straight along the view axis, to be calibrated (polarshape calibrate)
-        return tuple(LightSpec(direction=(0.0, 0.0, -1.0), name=f"light{i}") for i in range(lights))
+        return tuple(RigLight(direction=(0.0, 0.0, -1.0), name=f"light{i}") for i in range(lights))
     specs = tuple(lights)
     if not specs:
         raise ValueError("a light rig needs at least one light; got an empty list")
     for spec in specs:
-        if not isinstance(spec, LightSpec):
-            raise TypeError(f"lights must be LightSpec objects; got {type(spec).__name__}")
+        if not isinstance(spec, RigLight):
+            raise TypeError(f"lights must be RigLight objects; got {type(spec).__name__}")
     return specs
 
 
@@ -153,7 +154,7 @@ class _RigBase(ABC):
 
     def __init__(
         self,
-        lights: Sequence[LightSpec] | int,
+        lights: Sequence[RigLight] | int,
         *,
         strobe_camera: Any = None,
         strobe_line: str = "Line1",
@@ -171,7 +172,7 @@ class _RigBase(ABC):
         return len(self._lights)
 
     @property
-    def lights(self) -> tuple[LightSpec, ...]:
+    def lights(self) -> tuple[RigLight, ...]:
         """Direction/position metadata of every light, index order."""
         return self._lights
 
@@ -224,7 +225,7 @@ class SimulatedLightRig(_RigBase):
         strobe_camera, strobe_line: optionally enable a camera's ExposureActive strobe output.
     """
 
-    def __init__(self, target: Any, lights: Sequence[LightSpec] | int, *, strobe_camera: Any = None,
+    def __init__(self, target: Any, lights: Sequence[RigLight] | int, *, strobe_camera: Any = None,
                  strobe_line: str = "Line1") -> None:
         if not callable(getattr(target, "set_light", None)):
             raise TypeError(f"target {type(target).__name__} has no set_light(index) method")
@@ -254,7 +255,7 @@ class ManualLightRig(_RigBase):
         strobe_camera, strobe_line: optionally enable a camera's ExposureActive strobe output.
     """
 
-    def __init__(self, lights: Sequence[LightSpec] | int, *, input_fn: Callable[[str], str] = input,
+    def __init__(self, lights: Sequence[RigLight] | int, *, input_fn: Callable[[str], str] = input,
                  strobe_camera: Any = None, strobe_line: str = "Line1") -> None:
         super().__init__(lights, strobe_camera=strobe_camera, strobe_line=strobe_line)
         self._input = input_fn
@@ -296,7 +297,7 @@ class SerialLightRig(_RigBase):
     def __init__(
         self,
         port: str,
-        lights: Sequence[LightSpec] | int,
+        lights: Sequence[RigLight] | int,
         *,
         baudrate: int = 115200,
         timeout_s: float = 1.0,

@@ -27,10 +27,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from polarshape.acquisition.camera import PIXEL_FORMATS
+from polarshape.imaging.pixels import PIXEL_FORMATS, bit_depth_of
 
 __all__ = [
-    "bit_depth_of",
     "format_name_of",
     "pack_mosaic",
     "payload_size",
@@ -39,19 +38,6 @@ __all__ = [
 
 _PACKED12 = ("PolarizeMono12p", "PolarizeMono12Packed")
 _CODE_TO_NAME: dict[int, str] = {code: name for name, (code, _) in PIXEL_FORMATS.items()}
-
-
-def _check_format(pixel_format: str) -> None:
-    if pixel_format not in PIXEL_FORMATS:
-        raise ValueError(
-            f"pixel_format {pixel_format!r} is not supported; use one of {sorted(PIXEL_FORMATS)}"
-        )
-
-
-def bit_depth_of(pixel_format: str) -> int:
-    """Significant bits per pixel of a PFNC polarisation format (8, 12 or 16)."""
-    _check_format(pixel_format)
-    return PIXEL_FORMATS[pixel_format][1]
 
 
 def format_name_of(code: int) -> str:
@@ -67,7 +53,7 @@ def format_name_of(code: int) -> str:
 
 def payload_size(pixel_format: str, width: int, height: int) -> int:
     """Number of bytes of one (height, width) image in ``pixel_format``."""
-    _check_format(pixel_format)
+    bit_depth_of(pixel_format)  # raises ValueError naming the supported formats
     if width <= 0 or height <= 0:
         raise ValueError(f"width and height must be positive; got width={width}, height={height}")
     n = width * height
@@ -83,12 +69,12 @@ def pack_mosaic(image: np.ndarray, pixel_format: str) -> bytes:
 
     Args:
         image: (H, W) integer array of sensor counts in ``[0, 2**bit_depth - 1]``.
-        pixel_format: a key of :data:`polarshape.acquisition.camera.PIXEL_FORMATS`.
+        pixel_format: a key of :data:`polarshape.imaging.pixels.PIXEL_FORMATS`.
 
     Returns:
         ``payload_size(pixel_format, W, H)`` bytes, rows concatenated top to bottom.
     """
-    _check_format(pixel_format)
+    bit_depth_of(pixel_format)  # raises ValueError naming the supported formats
     image = np.asarray(image)
     if image.ndim != 2:
         raise ValueError(f"image must have shape (H, W); got shape {image.shape}")
@@ -134,7 +120,7 @@ def unpack_mosaic(
     Args:
         data: the image payload; at least ``payload_size(pixel_format, width, height)`` bytes
             (trailing bytes, e.g. padding of a GigE Vision buffer, are ignored).
-        pixel_format: a key of :data:`polarshape.acquisition.camera.PIXEL_FORMATS`.
+        pixel_format: a key of :data:`polarshape.imaging.pixels.PIXEL_FORMATS`.
         width, height: image size in pixels.
 
     Returns:

@@ -46,14 +46,15 @@ import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from polarshape.acquisition.camera import PIXEL_FORMATS, Camera, CameraError, Frame
-from polarshape.acquisition.lights import LightRig, LightSpec
+from polarshape.acquisition.camera import Camera, CameraError, Frame
+from polarshape.acquisition.lights import LightRig, RigLight
+from polarshape.imaging.pixels import PIXEL_FORMATS
 from polarshape.io.atomic import OutputExistsError, atomic_path, atomic_write_text
+from polarshape.io.capture import CAPTURE_FORMAT, Distortion, IntrinsicsSpec, LightSpec, MosaicSpec, Projection
 
 logger = logging.getLogger(__name__)
 
 __all__ = [
-    "CAPTURE_FORMAT",
     "SATURATION_LIMIT",
     "SessionConfig",
     "average_frames",
@@ -63,10 +64,8 @@ __all__ = [
     "saturated_fraction",
 ]
 
-CAPTURE_FORMAT = "polarshape-capture/1"
 #: Largest fraction of saturated pixels an exposure of a bracket may have to be chosen.
 SATURATION_LIMIT = 0.001
-DEFAULT_MOSAIC = {"layout": [[90, 45], [135, 0]], "angles": "counterclockwise_on_screen"}
 
 
 def saturated_fraction(frame: Frame) -> float:
@@ -265,7 +264,7 @@ def _capture_document(camera: Camera, rig: LightRig, metadata: list[dict[str, An
     longest = max(m["exposure_us"] for m in metadata)
     model = getattr(camera, "model", "") or type(camera).__name__
     block: dict[str, Any] = {"model": str(model), "projection": "orthographic", "bit_depth": bit_depths.pop(),
-                             "black_level": 0, "mosaic": dict(DEFAULT_MOSAIC)}
+                             "black_level": 0, "mosaic": MosaicSpec().model_dump(mode="json")}
     block.update(dict(camera_info or {}))
     lights = []
     for index, (spec, meta) in enumerate(zip(rig.lights, metadata, strict=True)):
@@ -285,7 +284,9 @@ class _Strict(BaseModel):
 
 
 class CameraSection(_Strict):
-    """``camera:`` of a session file."""
+    """``camera:`` of a session file: the backend's settings, and the capture.yaml ``camera`` fields
+    it passes on (``projection``, ``intrinsics``, ``distortion``, ``black_level``, ``model``; the
+    capture format's types)."""
 
     backend: Literal["aravis", "simulated", "fake_gige"]
     address: str | None = None
@@ -297,9 +298,9 @@ class CameraSection(_Strict):
     exposure_us: float | None = Field(None, gt=0)
     gain_db: float | None = None
     roi: tuple[int, int, int, int] | None = None
-    projection: Literal["orthographic", "perspective"] = "orthographic"
-    intrinsics: dict[str, float] | None = None
-    distortion: list[float] | None = None
+    projection: Projection = "orthographic"
+    intrinsics: IntrinsicsSpec | None = None
+    distortion: Distortion | None = None
     black_level: float = 0
     model: str | None = None
 
@@ -309,7 +310,7 @@ class CameraSection(_Strict):
             raise ValueError("camera.address is required for backend 'aravis' (the camera's IP address)")
         if self.backend == "simulated" and not self.scene:
             raise ValueError("camera.scene (a scene YAML file) is required for backend 'simulated'")
-        if self.projection == "perspective" and not self.intrinsics:
+        if self.projection == "perspective" and self.intrinsics is None:
             raise ValueError("camera.intrinsics {fx, fy, cx, cy} is required with projection 'perspective' (run "
                              "`polarshape calibrate intrinsics` first), or set projection: orthographic")
         if self.pixel_format is not None and self.pixel_format not in PIXEL_FORMATS:
@@ -317,16 +318,13 @@ class CameraSection(_Strict):
         return self
 
 
-class LightEntry(_Strict):
-    """One light of ``lights.list``."""
+class LightEntry(LightSpec):
+    """One light of ``lights:``: a :class:`~polarshape.io.capture.LightSpec` with a free label."""
 
-    direction: tuple[float, float, float] | None = None
-    position: tuple[float, float, float] | None = None
-    intensity: float = Field(1.0, gt=0)
     name: str = ""
 
-    def to_spec(self) -> LightSpec:
-        return LightSpec(direction=self.direction, position=self.position, intensity=self.intensity, name=self.name)
+    def to_rig_light(self) -> RigLight:
+        return RigLight(direction=self.direction, position=self.position, intensity=self.intensity, name=self.name)
 
 
 class RigSection(_Strict):
@@ -384,9 +382,9 @@ def load_session_config(path: str | Path) -> SessionConfig:
         raise ValueError(f"{path}: invalid session file:\n{exc}") from exc
 
 
-def _lights_of(config: SessionConfig, camera: Any) -> list[LightSpec]:
+def _lights_of(config: SessionConfig, camera: Any) -> list[RigLight]:
     if config.lights:
-        return [entry.to_spec() for entry in config.lights]
+        return [entry.to_rig_light() for entry in config.lights]
     # a simulated scene knows its lights
     scene_lights = getattr(getattr(camera, "config", None), "lights", None)
     if not scene_lights:
@@ -394,7 +392,7 @@ def _lights_of(config: SessionConfig, camera: Any) -> list[LightSpec]:
     specs = []
     for light in scene_lights:
         light = light.to_light() if hasattr(light, "to_light") else light
-        specs.append(LightSpec(direction=getattr(light, "direction", None), position=getattr(light, "position", None),
+        specs.append(RigLight(direction=getattr(light, "direction", None), position=getattr(light, "position", None),
                                intensity=float(getattr(light, "intensity", 1.0)) or 1.0))
     return specs
 
@@ -456,9 +454,9 @@ def capture_session(
         if cam_cfg.model:
             info["model"] = cam_cfg.model
         if cam_cfg.intrinsics is not None:
-            info["intrinsics"] = cam_cfg.intrinsics
+            info["intrinsics"] = cam_cfg.intrinsics.model_dump()
         if cam_cfg.distortion is not None:
-            info["distortion"] = cam_cfg.distortion
+            info["distortion"] = list(cam_cfg.distortion)
         return run_capture_session(
             camera, rig, out_dir, frames_per_light=config.capture.frames_per_light,
             exposure_bracket=config.capture.exposure_bracket, resume=resume, camera_info=info,

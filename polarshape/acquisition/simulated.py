@@ -23,20 +23,20 @@ import torch
 from torch import Tensor
 from tqdm import tqdm
 
-from polarshape.acquisition.camera import PIXEL_FORMATS, CameraError, Frame
-from polarshape.acquisition.noise import bit_depth_of
+from polarshape.acquisition.camera import CameraError, Frame
+from polarshape.brdf.geometry import sensor_plane_basis, sensor_plane_stokes
+from polarshape.imaging.pixels import PIXEL_FORMATS, bit_depth_of
+from polarshape.checks import to_numpy
 from polarshape.io.atomic import OutputExistsError
 from polarshape.io.capture import CAPTURE_FORMAT, Capture, parse_capture_spec, write_capture
-from polarshape.render import (
+from polarshape.lights import light_to_dict
+from polarshape.scene.render import (
     albedo_scale_map,
     mosaic_radiance,
     polariser_angle_map,
-    sensor_plane_basis,
-    sensor_plane_stokes,
     shade_stokes,
 )
 from polarshape.scene.config import SceneConfig, load_scene_config
-from polarshape.scene.lights import light_to_dict
 from polarshape.scene.objects import Scene
 from polarshape.scene.raycast import GeometryBuffers, superpixel_ground_truth
 
@@ -194,9 +194,9 @@ class SimulatedCamera:
         (H/2, W/2) bool (super-pixels whose four sites all see the object)."""
         normals, depth, mask = superpixel_ground_truth(self.geometry, self.scene.object_mask(self.geometry))
         return {
-            "normals": normals.cpu().numpy().astype(np.float32),
-            "depth": depth.cpu().numpy().astype(np.float32),
-            "mask": mask.cpu().numpy(),
+            "normals": to_numpy(normals, np.float32),
+            "depth": to_numpy(depth, np.float32),
+            "mask": to_numpy(mask),
         }
 
     def render_capture(self, out_dir: str | Path | None = None, *, overwrite: bool = False, progress: bool = True) -> Capture:
@@ -239,10 +239,7 @@ class SimulatedCamera:
             "projection": self.config.camera.projection,
             "bit_depth": bit_depth,
             "black_level": self.sensor.black_level(bit_depth),
-            "mosaic": {
-                "layout": [list(row) for row in self.config.camera.mosaic.layout],
-                "angles": self.config.camera.mosaic.angles,
-            },
+            "mosaic": self.config.camera.mosaic.model_dump(mode="json"),
         }
         if self.config.camera.intrinsics is not None and self.config.camera.projection == "perspective":
             camera["intrinsics"] = self.config.camera.intrinsics.model_dump()

@@ -1,7 +1,8 @@
 """The Fresnel Microfacet BRDF forward model (spec ../shared/spec/fmbrdf.md) and its baselines.
 
-Main entry point: :func:`fmbrdf_stokes`. Material tables for repeated evaluation:
-:func:`build_tables`. Baselines of spec §10: :mod:`polarshape.brdf.baselines`.
+Main entry point: :func:`fmbrdf_stokes`. The parameter set of one material: :class:`FMBRDFParams`.
+Material tables for repeated evaluation: :func:`build_tables`. Baselines of spec §10:
+:mod:`polarshape.brdf.baselines`.
 """
 
 from polarshape.brdf.baselines import (
@@ -12,11 +13,14 @@ from polarshape.brdf.baselines import (
     torrance_sparrow_stokes,
 )
 from polarshape.brdf.fmbrdf import PARAM_BOUNDS, FMBRDFTables, build_tables, fmbrdf_stokes
+from polarshape.brdf.params import FMBRDF_PARAM_NAMES, FMBRDFParams
 
 __all__ = [
     "fmbrdf_stokes",
     "build_tables",
     "FMBRDFTables",
+    "FMBRDFParams",
+    "FMBRDF_PARAM_NAMES",
     "PARAM_BOUNDS",
     "MODELS",
     "lambertian_stokes",

@@ -29,6 +29,8 @@ from polarshape.brdf.distribution import d_normalisation
 from polarshape.brdf.geometry import angle_between, dot, safe_normalize, shading_geometry, stokes_frame
 from polarshape.brdf.smith import SmithTable, build_smith_table, projected_area_exact
 from polarshape.brdf.surface import surface_stokes
+from polarshape.checks import check_dtype_floating, check_shape, check_tensor
+from polarshape.errors import ShapeError
 
 Param = Union[float, Tensor]
 
@@ -125,17 +127,14 @@ def build_tables(
 
 def _check_vectors(normal: Tensor, light: Tensor, view: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     for name, v in (("normal", normal), ("light", light), ("view", view)):
-        if not isinstance(v, Tensor):
-            raise TypeError(f"{name} must be a torch.Tensor of shape (..., 3); got {type(v).__name__}")
-        if v.shape[-1:] != (3,):
-            raise ValueError(f"{name} must have shape (..., 3); got {tuple(v.shape)}")
-        if not v.is_floating_point():
-            raise TypeError(f"{name} must be a floating-point tensor; got {v.dtype}")
+        check_tensor(v, name)
+        check_shape(v, ["*", "3"], name)
+        check_dtype_floating(v, name)
     dtype = torch.promote_types(torch.promote_types(normal.dtype, light.dtype), view.dtype)
     try:
         n, l, v = torch.broadcast_tensors(normal.to(dtype), light.to(dtype), view.to(dtype))
     except RuntimeError as err:
-        raise ValueError(
+        raise ShapeError(
             f"normal {tuple(normal.shape)}, light {tuple(light.shape)} and view {tuple(view.shape)} do not broadcast"
         ) from err
     return safe_normalize(n), safe_normalize(l), safe_normalize(v)

@@ -30,7 +30,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from polarshape.imaging.mosaic import MosaicLayout, channel_angles_rad, check_layout, split_mosaic
+from polarshape.checks import check_dtype_floating
+from polarshape.imaging.mosaic import MosaicLayout, channel_angles_rad, check_layout, check_mosaic_shape, split_mosaic
 from polarshape.imaging.stokes import intensities_from_stokes, stokes_from_intensities
 
 __all__ = ["DEMOSAIC_METHODS", "DemosaicMethod", "intensities_from_mosaic", "stokes_from_mosaic"]
@@ -124,21 +125,11 @@ def _edge_aware(m: Tensor, modulation: Tensor, tau_rel: float) -> Tensor:
 
 
 def _prepare(mosaic: Tensor, layout: MosaicLayout, method: str, tau_rel: float) -> None:
-    if not isinstance(mosaic, Tensor):
-        raise TypeError(f"mosaic must be a torch.Tensor of shape (*, H, W); got {type(mosaic).__name__}")
-    if not mosaic.is_floating_point():
-        raise TypeError(
-            f"mosaic must be floating point; got {mosaic.dtype} "
-            "(convert sensor counts with polarshape.imaging.pixels.counts_to_float)"
-        )
+    check_dtype_floating(mosaic, "mosaic", "convert sensor counts with polarshape.imaging.pixels.counts_to_float")
     check_layout(layout)
     if method not in DEMOSAIC_METHODS:
         raise ValueError(f"method must be one of {DEMOSAIC_METHODS}; got {method!r}")
-    if mosaic.ndim < 2 or mosaic.shape[-1] % 2 or mosaic.shape[-2] % 2 or 0 in mosaic.shape[-2:]:
-        raise ValueError(
-            f"mosaic must have a shape of (*, H, W) with H and W even and > 0 (whole 2×2 super-pixels); "
-            f"got {tuple(mosaic.shape)}"
-        )
+    check_mosaic_shape(mosaic)
     if not tau_rel > 0:
         raise ValueError(f"tau_rel must be > 0 (edge contrast, fraction of the local intensity); got {tau_rel!r}")
 

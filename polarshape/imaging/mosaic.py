@@ -17,6 +17,8 @@ from typing import Literal
 import torch
 from torch import Tensor
 
+from polarshape.checks import check_dtype_floating, check_shape, check_tensor, format_shape
+from polarshape.errors import ShapeError
 from polarshape.imaging.stokes import intensities_from_stokes
 
 __all__ = [
@@ -25,6 +27,7 @@ __all__ = [
     "MosaicLayout",
     "channel_angles_rad",
     "check_layout",
+    "check_mosaic_shape",
     "mosaic_from_intensities",
     "mosaic_from_stokes",
     "split_mosaic",
@@ -170,6 +173,27 @@ def check_layout(layout: object) -> MosaicLayout:
     return layout
 
 
+#: Why a mosaic needs even sizes, and the fix; shown in every mosaic shape error.
+_MOSAIC_SIZES = (
+    "with even, non-zero height and width (whole 2×2 super-pixels; crop one row/column, and shift the "
+    "layout with MosaicLayout.shifted if you crop at the top/left)"
+)
+
+
+def check_mosaic_shape(mosaic: object, name: str = "mosaic") -> Tensor:
+    """Return ``mosaic`` if it is a tensor of shape (*, 2H, 2W) with H, W >= 1, else raise.
+
+    Raises:
+        TypeError: not a ``torch.Tensor``.
+        ShapeError: fewer than two dimensions, an odd or zero height or width (message shows the shape).
+    """
+    mosaic = check_tensor(mosaic, name)
+    check_shape(mosaic, ["*", "2H", "2W"], name, _MOSAIC_SIZES)
+    if 0 in mosaic.shape[-2:]:
+        raise ShapeError(f"{name} must have shape (*, 2H, 2W) {_MOSAIC_SIZES}; got {format_shape(mosaic.shape)}")
+    return mosaic
+
+
 def mosaic_from_intensities(intensities: Tensor, layout: MosaicLayout) -> Tensor:
     """Interleave four polariser images into a raw mosaic.
 
@@ -183,9 +207,8 @@ def mosaic_from_intensities(intensities: Tensor, layout: MosaicLayout) -> Tensor
         the channel whose angle the layout puts at that site.
     """
     layout = check_layout(layout)
-    if not isinstance(intensities, Tensor) or intensities.ndim < 3 or intensities.shape[-3] != 4:
-        shape = tuple(intensities.shape) if isinstance(intensities, Tensor) else type(intensities).__name__
-        raise ValueError(f"intensities must be a tensor of shape (*, 4, H, W) (0°, 45°, 90°, 135°); got {shape}")
+    check_tensor(intensities, "intensities")
+    check_shape(intensities, ["*", "4", "H", "W"], "intensities", "(0°, 45°, 90°, 135°)")
     *batch, _, h, w = intensities.shape
     out = intensities.new_empty((*batch, 2 * h, 2 * w))
     for i in range(2):
@@ -204,8 +227,7 @@ def mosaic_from_stokes(stokes: Tensor, layout: MosaicLayout) -> Tensor:
     Returns:
         (*, 2H, 2W) mosaic of ``½ (s0 + s1 cos 2θ + s2 sin 2θ)`` (spec §1).
     """
-    if not isinstance(stokes, Tensor) or not stokes.is_floating_point():
-        raise TypeError("stokes must be a floating-point torch.Tensor of shape (*, 3, H, W)")
+    check_dtype_floating(stokes, "stokes")
     angles = channel_angles_rad(device=stokes.device, dtype=stokes.dtype)
     return mosaic_from_intensities(intensities_from_stokes(stokes, angles), layout)
 
@@ -221,13 +243,6 @@ def split_mosaic(mosaic: Tensor, layout: MosaicLayout) -> Tensor:
         (*, 4, H, W) images at 0°, 45°, 90°, 135° (our convention), same dtype/device as ``mosaic``.
     """
     layout = check_layout(layout)
-    if not isinstance(mosaic, Tensor) or mosaic.ndim < 2:
-        raise ValueError("mosaic must be a torch.Tensor of shape (*, 2H, 2W)")
-    h2, w2 = mosaic.shape[-2:]
-    if h2 % 2 or w2 % 2 or h2 == 0 or w2 == 0:
-        raise ValueError(
-            f"mosaic must have even, non-zero height and width (whole 2×2 super-pixels); got {h2}×{w2}: "
-            "crop one row/column (and shift the layout with MosaicLayout.shifted if you crop at the top/left)"
-        )
+    check_mosaic_shape(mosaic)
     channels = [mosaic[..., i::2, j::2] for i, j in (layout.site_of_channel(c) for c in range(4))]
     return torch.stack(channels, dim=-3)

@@ -1,4 +1,5 @@
-"""Sensor pixel formats: counts <-> floats, saturation and dark masks, super-pixel mask reduction.
+"""Sensor pixel formats (GenICam names, bit depths): counts <-> floats, saturation and dark masks,
+super-pixel mask reduction.
 
 Raw counts are low-bit aligned integers in [0, 2**bit_depth - 1] (capture-format.md), stored in
 ``uint8`` (8-bit) or ``uint16`` (10, 12, 16-bit). Floats are fractions of full scale after black
@@ -13,8 +14,12 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from polarshape.checks import check_shape, to_numpy
+
 __all__ = [
     "BIT_DEPTHS",
+    "PIXEL_FORMATS",
+    "bit_depth_of",
     "check_bit_depth",
     "counts_to_float",
     "dark_mask",
@@ -27,6 +32,15 @@ __all__ = [
 #: Bit depths polarshape understands.
 BIT_DEPTHS: tuple[int, ...] = (8, 10, 12, 16)
 
+#: Pixel formats polarshape understands, by GenICam PFNC name -> (code, bit depth).
+PIXEL_FORMATS: dict[str, tuple[int, int]] = {
+    "PolarizeMono8": (0x81080001, 8),
+    "PolarizeMono12p": (0x810C0047, 12),
+    "PolarizeMono12Packed": (0x810C0006, 12),
+    "PolarizeMono12": (0x81100008, 12),
+    "PolarizeMono16": (0x81100007, 16),
+}
+
 ArrayOrTensor = TypeVar("ArrayOrTensor", np.ndarray, Tensor)
 
 
@@ -38,6 +52,13 @@ def check_bit_depth(bit_depth: object) -> int:
             f"format, e.g. 12 for PolarizeMono12p); got {bit_depth!r}"
         )
     return int(bit_depth)
+
+
+def bit_depth_of(pixel_format: str) -> int:
+    """Significant bits per pixel of a PFNC polarisation format (a key of :data:`PIXEL_FORMATS`: 8, 12 or 16)."""
+    if pixel_format not in PIXEL_FORMATS:
+        raise ValueError(f"pixel_format {pixel_format!r} is not supported; use one of {sorted(PIXEL_FORMATS)}")
+    return PIXEL_FORMATS[pixel_format][1]
 
 
 def max_count(bit_depth: int) -> int:
@@ -122,9 +143,7 @@ def float_to_counts(x: np.ndarray | Tensor, bit_depth: int, black_level: float =
     bit_depth = check_bit_depth(bit_depth)
     black = _check_black_level(black_level, bit_depth)
     top = max_count(bit_depth)
-    if isinstance(x, Tensor):
-        x = x.detach().to("cpu", torch.float64).numpy()
-    arr = np.asarray(x, dtype=np.float64)
+    arr = to_numpy(x, np.float64)
     counts = np.rint(np.nan_to_num(arr * (top - black) + black, nan=0.0, posinf=top, neginf=0.0))
     return np.clip(counts, 0, top).astype(np.uint8 if bit_depth == 8 else np.uint16)
 
@@ -183,8 +202,7 @@ def reduce_mask_to_superpixels(mask: ArrayOrTensor, mode: Literal["any", "all"] 
     """
     if mode not in ("any", "all"):
         raise ValueError(f"mode must be 'any' or 'all'; got {mode!r}")
-    if mask.ndim < 2 or mask.shape[-1] % 2 or mask.shape[-2] % 2:
-        raise ValueError(f"mask must have a shape of (*, 2H, 2W) with even sizes; got {tuple(mask.shape)}")
+    check_shape(mask, ["*", "2H", "2W"], "mask", "with even sizes")
     sites = [mask[..., i::2, j::2] != 0 for i in (0, 1) for j in (0, 1)]
     if isinstance(mask, np.ndarray):
         stacked = np.stack(sites, axis=0)

@@ -12,21 +12,15 @@ import math
 import torch
 from torch import Tensor
 
+from polarshape.checks import check_dtype_floating, check_shape, format_shape
+from polarshape.errors import ShapeError
+
 __all__ = ["aolp", "dolp", "intensities_from_stokes", "polariser_matrix", "stokes_from_intensities"]
 
 
-def _check_float_tensor(x: object, name: str) -> Tensor:
-    if not isinstance(x, Tensor):
-        raise TypeError(f"{name} must be a torch.Tensor; got {type(x).__name__} (convert with torch.as_tensor)")
-    if not x.is_floating_point():
-        raise TypeError(f"{name} must be a floating-point tensor; got dtype {x.dtype} (convert with .float())")
-    return x
-
-
 def _check_stokes(stokes: object, name: str = "stokes") -> Tensor:
-    stokes = _check_float_tensor(stokes, name)
-    if stokes.ndim < 3 or stokes.shape[-3] != 3:
-        raise ValueError(f"{name} must have a shape of (*, 3, H, W) (s0, s1, s2); got {tuple(stokes.shape)}")
+    stokes = check_dtype_floating(stokes, name)
+    check_shape(stokes, ["*", "3", "H", "W"], name, "(s0, s1, s2)")
     return stokes
 
 
@@ -39,9 +33,10 @@ def polariser_matrix(angles_rad: Tensor) -> Tensor:
     Returns:
         (K, 3) matrix ``A`` with ``I = A @ s`` (same dtype and device as ``angles_rad``).
     """
-    angles_rad = _check_float_tensor(angles_rad, "angles_rad")
-    if angles_rad.ndim != 1 or angles_rad.numel() == 0:
-        raise ValueError(f"angles_rad must have a shape of (K,) with K >= 1; got {tuple(angles_rad.shape)}")
+    angles_rad = check_dtype_floating(angles_rad, "angles_rad")
+    check_shape(angles_rad, ["K"], "angles_rad")
+    if angles_rad.numel() == 0:
+        raise ShapeError("angles_rad must have shape (K,) with K >= 1; got (0,)")
     two = 2.0 * angles_rad
     return 0.5 * torch.stack([torch.ones_like(two), torch.cos(two), torch.sin(two)], dim=-1)
 
@@ -65,16 +60,12 @@ def stokes_from_intensities(intensities: Tensor, angles_rad: Tensor) -> Tensor:
         >>> stokes_from_intensities(torch.ones(1, 4, 2, 2), ang)[0, :, 0, 0]
         tensor([2., 0., 0.])
     """
-    intensities = _check_float_tensor(intensities, "intensities")
-    angles_rad = _check_float_tensor(angles_rad, "angles_rad")
-    if intensities.ndim < 3:
-        raise ValueError(f"intensities must have a shape of (*, K, H, W); got {tuple(intensities.shape)}")
+    intensities = check_dtype_floating(intensities, "intensities")
+    angles_rad = check_dtype_floating(angles_rad, "angles_rad")
+    check_shape(intensities, ["*", "K", "H", "W"], "intensities")
     k = intensities.shape[-3]
-    if angles_rad.ndim != 1 or angles_rad.numel() != k:
-        raise ValueError(
-            f"angles_rad must have a shape of (K,) = ({k},) to match intensities (*, K, H, W) = "
-            f"{tuple(intensities.shape)}; got {tuple(angles_rad.shape)}"
-        )
+    match = f"to match intensities (*, K, H, W) = {format_shape(intensities.shape)}"
+    check_shape(angles_rad, [str(k)], "angles_rad", match)
     # The pseudo-inverse is computed once in float64 so the 0/45/90/135 case is exact to rounding.
     a = polariser_matrix(angles_rad.detach().to(torch.float64))  # (K, 3)
     sv = torch.linalg.svdvals(a)
@@ -99,7 +90,7 @@ def intensities_from_stokes(stokes: Tensor, angles_rad: Tensor) -> Tensor:
         (*, K, H, W) intensities ``½ (s0 + s1 cos 2θ + s2 sin 2θ)``, same dtype/device as ``stokes``.
     """
     stokes = _check_stokes(stokes)
-    a = polariser_matrix(_check_float_tensor(angles_rad, "angles_rad")).to(device=stokes.device, dtype=stokes.dtype)
+    a = polariser_matrix(angles_rad).to(device=stokes.device, dtype=stokes.dtype)
     return torch.einsum("kc,...chw->...khw", a, stokes)
 
 
@@ -115,39 +106,60 @@ def _safe_norm2(x: Tensor, y: Tensor) -> Tensor:
     return torch.where(positive, torch.sqrt(torch.where(positive, r2, torch.ones_like(r2))), torch.zeros_like(r2))
 
 
-def dolp(stokes: Tensor, eps: float = 1e-8) -> Tensor:
+def _stokes_along(stokes: object, dim: int) -> Tensor:
+    """``stokes`` checked to be a float tensor holding (s0, s1, s2) along ``dim``."""
+    if dim == -3:
+        return _check_stokes(stokes)  # the image layout (*, 3, H, W)
+    stokes = check_dtype_floating(stokes, "stokes")
+    after = -dim - 1 if dim < 0 else stokes.ndim - dim - 1  # dimensions after the Stokes axis
+    if after < 0:
+        raise ShapeError(f"stokes has no dim {dim} to hold (s0, s1, s2); got {format_shape(stokes.shape)}")
+    trailing = [f"N{i}" for i in range(1, after + 1)]
+    check_shape(stokes, ["*", "3", *trailing], "stokes", f"((s0, s1, s2) along dim {dim})")
+    return stokes
+
+
+def dolp(stokes: Tensor, *, dim: int = -3, eps: float = 1e-8) -> Tensor:
     """Degree of linear polarisation ``ρ = √(s1² + s2²) / s0`` (spec §1).
 
     Args:
-        stokes: (*, 3, H, W) linear Stokes vectors.
+        stokes: linear Stokes vectors with (s0, s1, s2) along ``dim``: (*, 3, H, W) images for the
+            default ``dim=-3``, (*, 3) vectors for ``dim=-1``.
+        dim: the axis of the three Stokes components.
         eps: lower bound on the denominator, so ``s0 <= 0`` gives a finite value (0 where also
-            s1 = s2 = 0). The bound is raised to the dtype's smallest normal number if smaller.
+            s1 = s2 = 0). The bound is raised to the dtype's smallest normal number if smaller
+            (``eps=0``: plain ``lin / s0`` wherever s0 is a positive normal number).
 
     Returns:
-        (*, H, W) DoLP. Not clipped: with noise it can exceed 1 (clip with ``.clamp(0, 1)``).
-        Finite everywhere for finite input, with finite gradients.
+        ``stokes`` without ``dim``, e.g. (*, H, W). Not clipped: with noise it can exceed 1 (clip
+        with ``.clamp(0, 1)``). Finite everywhere for finite input, with finite gradients.
+
+    Example:
+        >>> dolp(torch.tensor([2.0, 1.0, 0.0]), dim=-1)
+        tensor(0.5000)
     """
-    stokes = _check_stokes(stokes)
-    s0, s1, s2 = _upcast(stokes).unbind(dim=-3)
+    stokes = _stokes_along(stokes, dim)
+    s0, s1, s2 = _upcast(stokes).unbind(dim=dim)
     floor = max(float(eps), float(torch.finfo(s0.dtype).tiny))
     rho = _safe_norm2(s1, s2) / s0.clamp_min(floor)
     return rho.clamp_max(torch.finfo(stokes.dtype).max).to(stokes.dtype)
 
 
-def aolp(stokes: Tensor) -> Tensor:
+def aolp(stokes: Tensor, *, dim: int = -3) -> Tensor:
     """Angle of linear polarisation ``φ = ½ atan2(s2, s1)`` in (−π/2, π/2] radians (spec §1).
 
     Measured from the image x axis toward the image y axis (down). Where s1 = s2 = 0 the angle is
     undefined and 0 is returned (with a zero gradient).
 
     Args:
-        stokes: (*, 3, H, W) linear Stokes vectors.
+        stokes: linear Stokes vectors with (s0, s1, s2) along ``dim`` ((*, 3, H, W) by default).
+        dim: the axis of the three Stokes components.
 
     Returns:
-        (*, H, W) AoLP in radians.
+        AoLP in radians, ``stokes`` without ``dim``, e.g. (*, H, W).
     """
-    stokes = _check_stokes(stokes)
-    _, s1, s2 = _upcast(stokes).unbind(dim=-3)
+    stokes = _stokes_along(stokes, dim)
+    _, s1, s2 = _upcast(stokes).unbind(dim=dim)
     defined = (s1 != 0) | (s2 != 0)
     # atan2(0, 0) has a NaN gradient; evaluate a harmless point there instead.
     phi = 0.5 * torch.atan2(

@@ -15,9 +15,7 @@ import tempfile
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
-
-class OutputExistsError(FileExistsError):
-    """The destination exists and overwriting was not allowed."""
+from polarshape.errors import OutputExistsError
 
 
 def _check_destination(path: Path, overwrite: bool) -> None:

@@ -20,16 +20,18 @@ import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import numpy as np
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from polarshape.errors import CaptureError
 from polarshape.imaging.mosaic import CHANNEL_ANGLES_DEG, MosaicLayout
 from polarshape.imaging.pixels import BIT_DEPTHS, max_count, reduce_mask_to_superpixels
 from polarshape.io.atomic import atomic_directory, atomic_write_text
 from polarshape.io.images import IMAGE_SUFFIXES, ImageError, read_image, write_image
+from polarshape.lights import Light, Lights, light_from_dict
 
 logger = logging.getLogger(__name__)
 
@@ -38,10 +40,13 @@ __all__ = [
     "CameraSpec",
     "Capture",
     "CaptureError",
+    "CaptureLightSpec",
     "CaptureSpec",
+    "Distortion",
     "IntrinsicsSpec",
     "LightSpec",
     "MosaicSpec",
+    "Projection",
     "load_capture",
     "write_capture",
 ]
@@ -53,9 +58,21 @@ MASK_FILE = "mask.png"
 GROUND_TRUTH_DIR = "ground_truth"
 UNIT_TOLERANCE = 1e-3
 
+#: How a camera projects: parallel rays (telecentric lens) or a pinhole.
+Projection = Literal["orthographic", "perspective"]
+Vec3 = tuple[float, float, float]
 
-class CaptureError(ValueError):
-    """A capture folder or :class:`Capture` is invalid; the message names the file, the field and the fix."""
+
+def _check_distortion(v: tuple[float, ...]) -> tuple[float, ...]:
+    if len(v) not in (4, 5, 8, 12, 14):
+        raise ValueError(f"must have 4, 5, 8, 12 or 14 OpenCV coefficients (k1 k2 p1 p2 [k3 ...]); got {len(v)}")
+    if not all(math.isfinite(c) for c in v):
+        raise ValueError("coefficients must be finite numbers")
+    return v
+
+
+#: OpenCV lens distortion coefficients (k1, k2, p1, p2[, k3, …]), as in ``camera.distortion``.
+Distortion = Annotated[tuple[float, ...], AfterValidator(_check_distortion)]
 
 
 class _Strict(BaseModel):
@@ -97,9 +114,9 @@ class CameraSpec(_Strict):
     """Camera model, projection and pixel format."""
 
     model: str = "unknown"
-    projection: Literal["orthographic", "perspective"]
+    projection: Projection
     intrinsics: IntrinsicsSpec | None = None
-    distortion: tuple[float, ...] | None = None
+    distortion: Distortion | None = None
     bit_depth: int
     black_level: float = Field(default=0.0, ge=0, allow_inf_nan=False)
     mosaic: MosaicSpec = MosaicSpec()
@@ -109,15 +126,6 @@ class CameraSpec(_Strict):
     def _bit_depth(cls, v: int) -> int:
         if v not in BIT_DEPTHS:
             raise ValueError(f"must be one of {BIT_DEPTHS} (significant bits of the sensor counts); got {v}")
-        return v
-
-    @field_validator("distortion")
-    @classmethod
-    def _distortion(cls, v: tuple[float, ...] | None) -> tuple[float, ...] | None:
-        if v is not None and len(v) not in (4, 5, 8, 12, 14):
-            raise ValueError(f"must have 4, 5, 8, 12 or 14 OpenCV coefficients (k1 k2 p1 p2 [k3 ...]); got {len(v)}")
-        if v is not None and not all(math.isfinite(c) for c in v):
-            raise ValueError("coefficients must be finite numbers")
         return v
 
     @model_validator(mode="after")
@@ -135,25 +143,26 @@ class CameraSpec(_Strict):
 
 
 class LightSpec(_Strict):
-    """One light and the frame recorded under it (exactly one of ``direction`` / ``position``)."""
+    """One light of a capture, scene or session file, camera frame: exactly one of ``direction``
+    (toward a distant light) or ``position`` (a point light, metres), and its relative intensity.
 
-    direction: tuple[float, float, float] | None = None
-    position: tuple[float, float, float] | None = None
+    Capture files add the frame recorded under it (:class:`CaptureLightSpec`); the runtime light is
+    :meth:`to_light`.
+    """
+
+    direction: Vec3 | None = None
+    position: Vec3 | None = None
     intensity: float = Field(default=1.0, gt=0, allow_inf_nan=False)
-    frame: str
 
     @field_validator("direction")
     @classmethod
-    def _direction(cls, v: tuple[float, float, float] | None) -> tuple[float, float, float] | None:
+    def _direction(cls, v: Vec3 | None) -> Vec3 | None:
         if v is None:
             return v
         if not all(math.isfinite(c) for c in v):
             raise ValueError(f"must be finite; got {list(v)}")
-        norm = math.sqrt(sum(c * c for c in v))
-        if abs(norm - 1.0) > UNIT_TOLERANCE:
-            raise ValueError(
-                f"must be a unit vector (|d| = {norm:.6f}, tolerance {UNIT_TOLERANCE}): divide it by its norm"
-            )
+        if not any(v):
+            raise ValueError("must be a non-zero vector toward the light")
         if not v[2] < 0:
             raise ValueError(
                 f"z = {v[2]:.6g} must be < 0: the direction points from the object TO the light, in the camera frame "
@@ -164,9 +173,37 @@ class LightSpec(_Strict):
 
     @field_validator("position")
     @classmethod
-    def _position(cls, v: tuple[float, float, float] | None) -> tuple[float, float, float] | None:
+    def _position(cls, v: Vec3 | None) -> Vec3 | None:
         if v is not None and not all(math.isfinite(c) for c in v):
             raise ValueError(f"must be finite (metres, camera frame); got {list(v)}")
+        return v
+
+    @model_validator(mode="after")
+    def _one_kind(self) -> LightSpec:
+        if (self.direction is None) == (self.position is None):
+            raise ValueError(
+                "give exactly one of direction (unit vector to a distant light) or position (point light, metres)"
+            )
+        return self
+
+    def to_light(self) -> Light:
+        """The light this entry describes (:mod:`polarshape.lights`; a direction is normalised there)."""
+        return light_from_dict(self.model_dump(include={"direction", "position", "intensity"}, exclude_none=True))
+
+
+class CaptureLightSpec(LightSpec):
+    """One light of ``capture.yaml`` and the frame recorded under it; ``direction`` is a unit vector."""
+
+    frame: str
+
+    @field_validator("direction")
+    @classmethod
+    def _unit(cls, v: Vec3 | None) -> Vec3 | None:
+        norm = math.sqrt(sum(c * c for c in v)) if v is not None else 1.0
+        if abs(norm - 1.0) > UNIT_TOLERANCE:
+            raise ValueError(
+                f"must be a unit vector (|d| = {norm:.6f}, tolerance {UNIT_TOLERANCE}): divide it by its norm"
+            )
         return v
 
     @field_validator("frame")
@@ -179,21 +216,13 @@ class LightSpec(_Strict):
             raise ValueError(f"must be a {'/'.join(IMAGE_SUFFIXES)} file (lossless); got {v!r}")
         return v
 
-    @model_validator(mode="after")
-    def _one_kind(self) -> LightSpec:
-        if (self.direction is None) == (self.position is None):
-            raise ValueError(
-                "give exactly one of direction (unit vector to a distant light) or position (point light, metres)"
-            )
-        return self
-
 
 class CaptureSpec(_Strict):
     """The content of ``capture.yaml``."""
 
     format: Literal["polarshape-capture/1"]
     camera: CameraSpec
-    lights: tuple[LightSpec, ...] = Field(min_length=1)
+    lights: tuple[CaptureLightSpec, ...] = Field(min_length=1)
 
     @model_validator(mode="after")
     def _unique_frames(self) -> CaptureSpec:
@@ -270,41 +299,10 @@ class Capture:
     def num_lights(self) -> int:
         return len(self.spec.lights)
 
-    def light_intensities(self) -> np.ndarray:
-        """(K,) relative light intensities (float64)."""
-        return np.array([light.intensity for light in self.spec.lights], dtype=np.float64)
-
-    def light_directions(self, points: np.ndarray | None = None) -> np.ndarray:
-        """Unit vectors from the surface to each light, camera frame.
-
-        Args:
-            points: optional (*, 3) surface points in metres, camera frame; required if any light
-                is a point light.
-
-        Returns:
-            (K, 3) for directional lights only and ``points`` None; else (K, *, 3) (directional
-            lights broadcast over the points). float64.
-        """
-        lights = self.spec.lights
-        if points is None:
-            missing = [k for k, light in enumerate(lights) if light.direction is None]
-            if missing:
-                raise CaptureError(
-                    f"lights{missing} are point lights (position): pass the surface points (*, 3) to "
-                    "light_directions(points) to get per-point directions"
-                )
-            return np.array([light.direction for light in lights], dtype=np.float64)
-        pts = np.asarray(points, dtype=np.float64)
-        if pts.ndim < 1 or pts.shape[-1] != 3:
-            raise ValueError(f"points must have a shape of (*, 3) (metres, camera frame); got {pts.shape}")
-        out = np.empty((len(lights), *pts.shape), dtype=np.float64)
-        for k, light in enumerate(lights):
-            if light.direction is not None:
-                out[k] = np.asarray(light.direction, dtype=np.float64)
-            else:
-                d = np.asarray(light.position, dtype=np.float64) - pts
-                out[k] = d / np.maximum(np.linalg.norm(d, axis=-1, keepdims=True), 1e-12)
-        return out
+    def lights(self) -> Lights:
+        """The K lights of ``capture.yaml``, in frame order: ``lights().illuminate(points (..., 3))``
+        gives L (K, ..., 3) and E (K, ...) for directional and point lights alike."""
+        return Lights.from_entries(self.spec.lights)
 
 
 # --- validation shared by load and write -------------------------------------------------------
@@ -392,7 +390,7 @@ def _read_yaml(path: Path) -> Any:
         raise CaptureError(f"{path}: not UTF-8 text: {err}") from None
 
 
-def _read_frame(root: Path, k: int, light: LightSpec, bit_depth: int) -> np.ndarray:
+def _read_frame(root: Path, k: int, light: CaptureLightSpec, bit_depth: int) -> np.ndarray:
     path = root / light.frame
     where = f"{path} (lights[{k}].frame in {CAPTURE_YAML})"
     if not path.is_file():

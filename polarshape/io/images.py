@@ -13,6 +13,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from polarshape.errors import ImageError
 from polarshape.io.atomic import atomic_path
 
 logger = logging.getLogger(__name__)
@@ -21,10 +22,6 @@ __all__ = ["IMAGE_SUFFIXES", "ImageError", "read_image", "write_image"]
 
 #: File suffixes (lower case) of the image formats polarshape reads and writes.
 IMAGE_SUFFIXES: tuple[str, ...] = (".png", ".tif", ".tiff")
-
-
-class ImageError(ValueError):
-    """An image file is missing, unreadable or not a single-channel 8/16-bit image."""
 
 
 def _check_suffix(path: Path) -> None:

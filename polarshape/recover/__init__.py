@@ -1,36 +1,42 @@
-"""Recovery: initial normals from photometric stereo and polarisation cues."""
+"""Recovery: the solver parts behind :func:`polarshape.normals.recover_normals` (no orchestration here).
 
+Along the data flow:
+
+- :mod:`~polarshape.recover.observations` — :class:`RecoveryInputs` (images) and :class:`Observations`
+  (flat per-pixel batches), pyramid and crop;
+- :mod:`~polarshape.recover.preprocess` — capture → :class:`RecoveryInputs`;
+- :mod:`~polarshape.recover.photometric` — Lambertian photometric stereo (plain and robust): the initial normals;
+- :mod:`~polarshape.recover.reflectometry` — the material for known normals (spec eq. 25);
+- :mod:`~polarshape.recover.normal_solver` — per-pixel Levenberg–Marquardt normals, neighbour propagation;
+- :mod:`~polarshape.recover.priors` — smoothness prior, filling pixels without data;
+- :mod:`~polarshape.recover.coarse_to_fine` — material and normals alternated on a pyramid;
+- :mod:`~polarshape.recover.options` — the options, embedded in ``polarshape run``'s config.
+"""
+
+from polarshape.recover.coarse_to_fine import FMBRDFState, SolveLog, solve_fmbrdf
+from polarshape.recover.normal_solver import NormalProblem, propagate_normals, refine_normals
+from polarshape.recover.observations import Observations, RecoveryInputs
+from polarshape.recover.options import InitialNormalsOptions, RecoveryOptions
 from polarshape.recover.photometric import PSReason, RobustPSResult, lambertian_ps, robust_lambertian_ps
-from polarshape.recover.polarization_cues import (
-    PolarizationNormals,
-    azimuth_candidates,
-    diffuse_dolp,
-    disambiguate_azimuth,
-    normal_azimuth,
-    normals_from_angles,
-    normals_from_polarization,
-    select_closest_normal,
-    specular_dolp,
-    stokes_to_aolp_dolp,
-    zenith_from_diffuse_dolp,
-    zenith_from_specular_dolp,
-)
+from polarshape.recover.preprocess import preprocess_capture
+from polarshape.recover.reflectometry import ReflectanceFit, fit_reflectance
 
 __all__ = [
+    "FMBRDFState",
+    "InitialNormalsOptions",
+    "NormalProblem",
+    "Observations",
     "PSReason",
-    "PolarizationNormals",
+    "RecoveryInputs",
+    "RecoveryOptions",
+    "ReflectanceFit",
     "RobustPSResult",
-    "azimuth_candidates",
-    "diffuse_dolp",
-    "disambiguate_azimuth",
+    "SolveLog",
+    "fit_reflectance",
     "lambertian_ps",
-    "normal_azimuth",
-    "normals_from_angles",
-    "normals_from_polarization",
+    "preprocess_capture",
+    "propagate_normals",
+    "refine_normals",
     "robust_lambertian_ps",
-    "select_closest_normal",
-    "specular_dolp",
-    "stokes_to_aolp_dolp",
-    "zenith_from_diffuse_dolp",
-    "zenith_from_specular_dolp",
+    "solve_fmbrdf",
 ]

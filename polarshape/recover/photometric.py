@@ -119,8 +119,24 @@ def _prepare(
     mask: Tensor | None,
     view_dirs: Tensor | None,
 ) -> _Flat:
+    """Check every input and flatten it to P pixels; shapes as in :class:`_Flat`."""
     if not isinstance(intensity, Tensor) or not isinstance(lights, Tensor):
         raise TypeError("intensity and lights must be torch.Tensor objects")
+    # Shape errors are raised in argument order: intensity, lights, light_intensity, mask, view.
+    flat_i, spatial = _flatten_intensity(intensity)  # (K, P)
+    k = flat_i.shape[0]
+    dtype, device = flat_i.dtype, flat_i.device
+    flat_lights = _flatten_lights(lights, k, spatial, dtype, device)
+    flat_e = _flatten_light_intensity(light_intensity, k, spatial, dtype, device)
+    pixel_mask, obs_mask = _flatten_masks(mask, torch.isfinite(flat_i) & (flat_e > 0), spatial)
+    # Non-finite observations are never used; zero them so that no NaN leaks into sums.
+    flat_i = torch.where(obs_mask, flat_i, torch.zeros((), dtype=dtype, device=device))
+    view = _flatten_view_dirs(view_dirs, spatial, dtype, device)
+    return _Flat(flat_i, flat_lights, flat_e, pixel_mask, obs_mask, view, spatial)
+
+
+def _flatten_intensity(intensity: Tensor) -> tuple[Tensor, tuple[int, ...]]:
+    """Check a (K, *S) floating-point intensity; return it as (K, P) and the spatial shape S."""
     if not intensity.is_floating_point():
         raise ValueError(f"intensity must be a floating-point tensor; got dtype {intensity.dtype}")
     if intensity.ndim < 2:
@@ -128,7 +144,6 @@ def _prepare(
             "intensity must have shape (K, P) or (K, H, W) (K lights first); "
             f"got shape {tuple(intensity.shape)}"
         )
-    dtype, device = intensity.dtype, intensity.device
     k = intensity.shape[0]
     spatial = tuple(intensity.shape[1:])
     p = math.prod(spatial)
@@ -136,12 +151,18 @@ def _prepare(
         raise ValueError(
             f"intensity must hold at least one light and one pixel; got shape {tuple(intensity.shape)}"
         )
+    return intensity.reshape(k, p), spatial
 
+
+def _flatten_lights(
+    lights: Tensor, k: int, spatial: tuple[int, ...], dtype: torch.dtype, device: torch.device
+) -> Tensor:
+    """Check unit, finite lights (K, 3) or (K, *S, 3); return (K, 3) or (K, P, 3) in ``dtype``."""
     lights = lights.to(device=device, dtype=dtype)
     if lights.shape == (k, 3):
         flat_lights = lights
     elif lights.shape == (k, *spatial, 3):
-        flat_lights = lights.reshape(k, p, 3)
+        flat_lights = lights.reshape(k, math.prod(spatial), 3)
     else:
         raise ValueError(
             f"lights must have shape (K, 3) = ({k}, 3) for directional lights or (K, *S, 3) = "
@@ -156,30 +177,48 @@ def _prepare(
             f"[{float(norms.min()):.4g}, {float(norms.max()):.4g}]. Normalise them and put any "
             "intensity or 1/r² fall-off into light_intensity"
         )
+    return flat_lights
 
+
+def _flatten_light_intensity(
+    light_intensity: Tensor | None,
+    k: int,
+    spatial: tuple[int, ...],
+    dtype: torch.dtype,
+    device: torch.device,
+) -> Tensor:
+    """Check E ≥ 0, None / (K,) / (K, *S); return (K, 1) (shared, default 1) or (K, P)."""
     if light_intensity is None:
-        flat_e = torch.ones(k, 1, dtype=dtype, device=device)
+        return torch.ones(k, 1, dtype=dtype, device=device)
+    light_intensity = torch.as_tensor(light_intensity, dtype=dtype, device=device)
+    if light_intensity.shape == (k,):
+        flat_e = light_intensity.reshape(k, 1)
+    elif light_intensity.shape == (k, *spatial):
+        flat_e = light_intensity.reshape(k, math.prod(spatial))
     else:
-        light_intensity = torch.as_tensor(light_intensity, dtype=dtype, device=device)
-        if light_intensity.shape == (k,):
-            flat_e = light_intensity.reshape(k, 1)
-        elif light_intensity.shape == (k, *spatial):
-            flat_e = light_intensity.reshape(k, p)
-        else:
-            raise ValueError(
-                f"light_intensity must have shape (K,) = ({k},) or (K, *S) = {(k, *spatial)}; "
-                f"got {tuple(light_intensity.shape)}"
-            )
-        if not bool(torch.isfinite(flat_e).all()) or bool((flat_e < 0).any()):
-            raise ValueError("light_intensity must be finite and ≥ 0 (0 disables a light)")
+        raise ValueError(
+            f"light_intensity must have shape (K,) = ({k},) or (K, *S) = {(k, *spatial)}; "
+            f"got {tuple(light_intensity.shape)}"
+        )
+    if not bool(torch.isfinite(flat_e).all()) or bool((flat_e < 0).any()):
+        raise ValueError("light_intensity must be finite and ≥ 0 (0 disables a light)")
+    return flat_e
 
-    flat_i = intensity.reshape(k, p)
-    obs_mask = torch.isfinite(flat_i) & (flat_e > 0)  # (K, P)
-    pixel_mask = torch.ones(p, dtype=torch.bool, device=device)
+
+def _flatten_masks(
+    mask: Tensor | None, obs_mask: Tensor, spatial: tuple[int, ...]
+) -> tuple[Tensor, Tensor]:
+    """Merge the caller's (*S,) pixel or (K, *S) observation mask into ``obs_mask`` (K, P).
+
+    Returns the pixel mask (P,) (all True unless a pixel mask was given) and the observation mask
+    (K, P), False wherever the pixel is masked.
+    """
+    k, p = obs_mask.shape
+    pixel_mask = torch.ones(p, dtype=torch.bool, device=obs_mask.device)
     if mask is not None:
         if not isinstance(mask, Tensor):
             raise TypeError("mask must be a torch.Tensor (bool) or None")
-        mask = mask.to(device=device).bool()
+        mask = mask.to(device=obs_mask.device).bool()
         if mask.shape == spatial:
             pixel_mask = mask.reshape(p)
         elif mask.shape == (k, *spatial):
@@ -189,28 +228,29 @@ def _prepare(
                 f"mask must have the pixel shape {spatial} or the observation shape {(k, *spatial)}; "
                 f"got {tuple(mask.shape)}"
             )
-    obs_mask = obs_mask & pixel_mask.unsqueeze(0)
-    # Non-finite observations are never used; zero them so that no NaN leaks into sums.
-    flat_i = torch.where(obs_mask, flat_i, torch.zeros((), dtype=dtype, device=device))
+    return pixel_mask, obs_mask & pixel_mask.unsqueeze(0)
 
+
+def _flatten_view_dirs(
+    view_dirs: Tensor | None, spatial: tuple[int, ...], dtype: torch.dtype, device: torch.device
+) -> Tensor:
+    """Check unit view directions None / (3,) / (*S, 3); return (1, 3) (default (0, 0, -1)) or (P, 3)."""
     if view_dirs is None:
-        view = torch.tensor([[0.0, 0.0, -1.0]], dtype=dtype, device=device)
+        return torch.tensor([[0.0, 0.0, -1.0]], dtype=dtype, device=device)
+    view_dirs = view_dirs.to(device=device, dtype=dtype)
+    if view_dirs.shape == (3,):
+        view = view_dirs.reshape(1, 3)
+    elif view_dirs.shape == (*spatial, 3):
+        view = view_dirs.reshape(math.prod(spatial), 3)
     else:
-        view_dirs = view_dirs.to(device=device, dtype=dtype)
-        if view_dirs.shape == (3,):
-            view = view_dirs.reshape(1, 3)
-        elif view_dirs.shape == (*spatial, 3):
-            view = view_dirs.reshape(p, 3)
-        else:
-            raise ValueError(
-                f"view_dirs must have shape (3,) or (*S, 3) = {(*spatial, 3)} (unit, surface → "
-                f"camera); got {tuple(view_dirs.shape)}"
-            )
-        vn = view.norm(dim=-1)
-        if not bool(torch.isfinite(view).all()) or bool(((vn - 1.0).abs() > _UNIT_TOLERANCE).any()):
-            raise ValueError("view_dirs must be finite unit vectors (surface → camera)")
-
-    return _Flat(flat_i, flat_lights, flat_e, pixel_mask, obs_mask, view, spatial)
+        raise ValueError(
+            f"view_dirs must have shape (3,) or (*S, 3) = {(*spatial, 3)} (unit, surface → "
+            f"camera); got {tuple(view_dirs.shape)}"
+        )
+    vn = view.norm(dim=-1)
+    if not bool(torch.isfinite(view).all()) or bool(((vn - 1.0).abs() > _UNIT_TOLERANCE).any()):
+        raise ValueError("view_dirs must be finite unit vectors (surface → camera)")
+    return view
 
 
 def _check_light_geometry(flat: _Flat, max_condition: float, allow_degenerate: bool) -> bool:
@@ -229,8 +269,8 @@ def _check_light_geometry(flat: _Flat, max_condition: float, allow_degenerate: b
             f"whose directions are not coplanar{hint}"
         )
     if flat.lights.ndim == 2:
-        weighted = flat.lights * flat.light_intensity  # (K, 3) with E (K, 1) shared
         if flat.light_intensity.shape[1] == 1:
+            weighted = flat.lights * flat.light_intensity  # (K, 3) with E (K, 1) shared
             cond = _condition_from_gram(weighted.T @ weighted)
             bad = bool(cond > max_condition)
             worst = float(cond)
@@ -385,6 +425,158 @@ def _normals_from_b(b: Tensor, view: Tensor) -> tuple[Tensor, Tensor, Tensor]:
 
 
 # --------------------------------------------------------------------------------------------
+# Robust fit: the steps of robust_lambertian_ps
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class _RobustOptions:
+    """The scalar options of :func:`robust_lambertian_ps` (meanings in its docstring), checked on creation."""
+
+    dark_rel: float
+    dark_abs: float
+    saturation: float | None
+    outlier_rel: float
+    noise_std: float
+    outlier_sigma: float
+    max_trims: int | None
+    max_leverage: float
+    max_condition: float
+
+    def __post_init__(self) -> None:
+        for name in ("dark_rel", "dark_abs", "outlier_rel", "noise_std", "outlier_sigma"):
+            value = getattr(self, name)
+            if not math.isfinite(value) or value < 0:
+                raise ValueError(f"{name} must be finite and ≥ 0; got {value}")
+        if self.max_trims is not None and self.max_trims < 0:
+            raise ValueError(f"max_trims must be ≥ 0; got {self.max_trims}")
+        if not 0 < self.max_leverage <= 1:
+            raise ValueError(f"max_leverage must be in (0, 1]; got {self.max_leverage}")
+        if not self.max_condition >= 1:
+            raise ValueError(f"max_condition must be ≥ 1; got {self.max_condition}")
+        if self.saturation is not None and not math.isfinite(self.saturation):
+            raise ValueError(f"saturation must be finite or None; got {self.saturation}")
+
+
+def _select_lit(flat: _Flat, opts: _RobustOptions) -> Tensor:
+    """Step 1: observations (K, P) that are finite, unmasked, not in shadow and not saturated."""
+    zero = torch.zeros((), dtype=flat.intensity.dtype, device=flat.intensity.device)
+    e_safe = torch.where(
+        flat.light_intensity > 0, flat.light_intensity, torch.ones_like(flat.light_intensity)
+    )
+    shading = flat.intensity / e_safe  # (K, P) = albedo · N·L for a Lambertian observation
+    brightest = torch.where(flat.obs_mask, shading, torch.full_like(shading, -math.inf)).amax(0)  # (P,)
+    brightest = torch.where(torch.isfinite(brightest), brightest, zero)
+    dark_threshold = torch.clamp(opts.dark_rel * brightest, min=opts.dark_abs)  # (P,)
+    used = flat.obs_mask & (shading > dark_threshold.unsqueeze(0))
+    if opts.saturation is not None:
+        used = used & (flat.intensity < opts.saturation)
+    return used
+
+
+def _trim_highlights(
+    flat: _Flat, used: Tensor, opts: _RobustOptions
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Step 2: fit, drop each pixel's worst positive outlier, refit, up to ``max_trims`` rounds.
+
+    Args:
+        flat: the prepared inputs (K lights, P pixels).
+        used: (K, P) bool, the observations step 1 kept.
+        opts: the checked options.
+
+    Returns:
+        used (K, P) after trimming, and the final fit on it: b (P, 3), A⁻¹ or A⁺ (P, 3, 3),
+        condition (P,).
+    """
+    k = flat.intensity.shape[0]
+    dtype = flat.intensity.dtype
+    trims = max(k - 3, 0) if opts.max_trims is None else opts.max_trims
+    for iteration in range(trims + 1):
+        weights = used.to(dtype)
+        gram, rhs = _normal_equations(flat, weights)
+        b, inv, cond = _solve_sym3(gram, rhs, opts.max_condition)  # (P, 3), (P, 3, 3), (P,)
+        if iteration == trims:
+            break
+        remove = _worst_outliers(flat, used, b, inv, weights, opts)  # (K, P)
+        if remove is None:
+            break
+        used = used & ~remove
+    return used, b, inv, cond
+
+
+def _worst_outliers(
+    flat: _Flat, used: Tensor, b: Tensor, inv: Tensor, weights: Tensor, opts: _RobustOptions
+) -> Tensor | None:
+    """Per pixel, the one removable observation with the largest deleted residual over τ.
+
+    Args:
+        flat: the prepared inputs (K lights, P pixels).
+        used: (K, P) bool, the observations of the current fit.
+        b: (P, 3) the current fit; inv: (P, 3, 3) its A⁻¹ (or A⁺).
+        weights: (K, P) ``used`` as the fit's dtype.
+        opts: the checked options.
+
+    Returns:
+        (K, P) bool with at most one True per pixel, or None when no pixel has a candidate.
+    """
+    dtype = flat.intensity.dtype
+    residual, leverage = _residual_and_leverage(flat, b, inv, weights)  # (K, P) each
+    one_minus_h = (1.0 - leverage).clamp_min(torch.finfo(dtype).eps)
+    deleted = residual / one_minus_h  # error of predicting I_k from the other observations
+    tau = _threshold(flat, b, opts.outlier_rel, opts.outlier_sigma * opts.noise_std / one_minus_h.sqrt())
+    n_used = used.sum(0, keepdim=True)  # (1, P)
+    candidate = used & (deleted > tau) & (leverage < opts.max_leverage) & (n_used >= 4)
+    if not bool(candidate.any()):
+        return None
+    score = torch.where(candidate, deleted / tau, torch.full_like(deleted, -math.inf))
+    worst = score.argmax(0)  # (P,)
+    return torch.zeros_like(used).scatter_(0, worst.unsqueeze(0), True) & candidate
+
+
+def _inconsistent(flat: _Flat, used: Tensor, b: Tensor, inv: Tensor, opts: _RobustOptions) -> Tensor:
+    """Pixels (P,) bool where a used observation (K, P) misses the final fit b (P, 3) by more than τ.
+
+    Such a pixel's trimming could not isolate the highlight (too many contaminated lights) or the
+    pixel is not Lambertian.
+    """
+    residual, _ = _residual_and_leverage(flat, b, inv, used.to(flat.intensity.dtype))
+    noise_part = torch.full_like(residual, opts.outlier_sigma * opts.noise_std)  # (K, P)
+    tau = _threshold(flat, b, opts.outlier_rel, noise_part)
+    return (used & (residual.abs() > tau)).any(0)
+
+
+def _reasons(
+    pixel_mask: Tensor,
+    n_used: Tensor,
+    cond: Tensor,
+    back: Tensor,
+    inconsistent: Tensor,
+    max_condition: float,
+    degenerate: PSReason | None,
+) -> Tensor:
+    """Step 3: per-pixel :class:`PSReason` codes (P,) int64 from (P,) flags and counts.
+
+    A later rule overrides an earlier one (MASKED wins over all); ``degenerate`` (the full light
+    set's code, or None) marks every pixel that would otherwise be OK.
+    """
+    reason = torch.full(pixel_mask.shape, int(PSReason.OK), dtype=torch.int64, device=pixel_mask.device)
+    reason = torch.where(inconsistent, torch.full_like(reason, int(PSReason.INCONSISTENT)), reason)
+    reason = torch.where(back, torch.full_like(reason, int(PSReason.BACK_FACING)), reason)
+    reason = torch.where(cond > max_condition, torch.full_like(reason, int(PSReason.ILL_CONDITIONED)), reason)
+    reason = torch.where(n_used < 3, torch.full_like(reason, int(PSReason.TOO_FEW_LIGHTS)), reason)
+    if degenerate is not None:
+        reason = torch.where(reason == int(PSReason.OK), torch.full_like(reason, int(degenerate)), reason)
+    return torch.where(pixel_mask, reason, torch.full_like(reason, int(PSReason.MASKED)))
+
+
+def _log_reasons(reason: Tensor) -> None:
+    """Debug-log how many pixels got each :class:`PSReason`; reason (P,) int64."""
+    if logger.isEnabledFor(logging.DEBUG):
+        counts = torch.bincount(reason, minlength=len(PSReason)).tolist()
+        logger.debug("robust PS: %s", {r.name: counts[r.value] for r in PSReason})
+
+
+# --------------------------------------------------------------------------------------------
 # Public API
 # --------------------------------------------------------------------------------------------
 
@@ -510,95 +702,40 @@ def robust_lambertian_ps(
         ValueError: invalid shapes or values, fewer than 3 lights, coplanar lights (unless
             ``allow_degenerate``).
     """
-    for name, value in (
-        ("dark_rel", dark_rel),
-        ("dark_abs", dark_abs),
-        ("outlier_rel", outlier_rel),
-        ("noise_std", noise_std),
-        ("outlier_sigma", outlier_sigma),
-    ):
-        if not math.isfinite(value) or value < 0:
-            raise ValueError(f"{name} must be finite and ≥ 0; got {value}")
-    if max_trims is not None and max_trims < 0:
-        raise ValueError(f"max_trims must be ≥ 0; got {max_trims}")
-    if not 0 < max_leverage <= 1:
-        raise ValueError(f"max_leverage must be in (0, 1]; got {max_leverage}")
-    if not max_condition >= 1:
-        raise ValueError(f"max_condition must be ≥ 1; got {max_condition}")
-    if saturation is not None and not math.isfinite(saturation):
-        raise ValueError(f"saturation must be finite or None; got {saturation}")
-
+    opts = _RobustOptions(
+        dark_rel=dark_rel,
+        dark_abs=dark_abs,
+        saturation=saturation,
+        outlier_rel=outlier_rel,
+        noise_std=noise_std,
+        outlier_sigma=outlier_sigma,
+        max_trims=max_trims,
+        max_leverage=max_leverage,
+        max_condition=max_condition,
+    )
     flat = _prepare(intensity, lights, light_intensity, mask, view_dirs)
     degenerate = _check_light_geometry(flat, max_condition, allow_degenerate)
-    k, p = flat.intensity.shape
-    dtype, device = flat.intensity.dtype, flat.intensity.device
-    zero = torch.zeros((), dtype=dtype, device=device)
+    k = flat.intensity.shape[0]
 
-    # 1. shadows, saturation, non-finite, masked
-    e_safe = torch.where(
-        flat.light_intensity > 0, flat.light_intensity, torch.ones_like(flat.light_intensity)
-    )
-    shading = flat.intensity / e_safe  # (K, P) = albedo · N·L for a Lambertian observation
-    brightest = torch.where(flat.obs_mask, shading, torch.full_like(shading, -math.inf)).amax(0)  # (P,)
-    brightest = torch.where(torch.isfinite(brightest), brightest, zero)
-    dark_threshold = torch.clamp(dark_rel * brightest, min=dark_abs)  # (P,)
-    used = flat.obs_mask & (shading > dark_threshold.unsqueeze(0))
-    if saturation is not None:
-        used = used & (flat.intensity < saturation)
+    used = _select_lit(flat, opts)  # (K, P)
+    used, b, inv, cond = _trim_highlights(flat, used, opts)  # (K, P), (P, 3), (P, 3, 3), (P,)
+    inconsistent = _inconsistent(flat, used, b, inv, opts)  # (P,)
 
-    # 2. iterative removal of specular observations
-    trims = max(k - 3, 0) if max_trims is None else max_trims
-    for iteration in range(trims + 1):
-        weights = used.to(dtype)
-        gram, rhs = _normal_equations(flat, weights)
-        b, inv, cond = _solve_sym3(gram, rhs, max_condition)  # (P, 3), (P, 3, 3), (P,)
-        if iteration == trims:
-            break
-        residual, leverage = _residual_and_leverage(flat, b, inv, weights)  # (K, P) each
-        one_minus_h = (1.0 - leverage).clamp_min(torch.finfo(dtype).eps)
-        deleted = residual / one_minus_h  # error of predicting I_k from the other observations
-        tau = _threshold(flat, b, outlier_rel, outlier_sigma * noise_std / one_minus_h.sqrt())
-        n_used = used.sum(0, keepdim=True)  # (1, P)
-        candidate = used & (deleted > tau) & (leverage < max_leverage) & (n_used >= 4)
-        if not bool(candidate.any()):
-            break
-        score = torch.where(candidate, deleted / tau, torch.full_like(deleted, -math.inf))
-        worst = score.argmax(0)  # (P,)
-        remove = torch.zeros_like(used).scatter_(0, worst.unsqueeze(0), True) & candidate
-        used = used & ~remove
-
-    # A used observation still off the final fit by more than the threshold: the trimming could
-    # not isolate the highlight (too many contaminated lights) or the pixel is not Lambertian.
-    residual, _ = _residual_and_leverage(flat, b, inv, used.to(dtype))
-    tau = _threshold(flat, b, outlier_rel, torch.full_like(residual, outlier_sigma * noise_std))
-    inconsistent = (used & (residual.abs() > tau)).any(0)  # (P,)
-
-    # 3. flags
     n_used = used.sum(0)  # (P,)
     normals, albedo, back = _normals_from_b(b, flat.view)
     cond = torch.where(n_used >= 3, cond, torch.full_like(cond, math.inf))
-    reason = torch.full((p,), int(PSReason.OK), dtype=torch.int64, device=device)
-    reason = torch.where(inconsistent, torch.full_like(reason, int(PSReason.INCONSISTENT)), reason)
-    reason = torch.where(back, torch.full_like(reason, int(PSReason.BACK_FACING)), reason)
-    reason = torch.where(cond > max_condition, torch.full_like(reason, int(PSReason.ILL_CONDITIONED)), reason)
-    reason = torch.where(n_used < 3, torch.full_like(reason, int(PSReason.TOO_FEW_LIGHTS)), reason)
-    if degenerate:
-        code = PSReason.TOO_FEW_LIGHTS if k < 3 else PSReason.ILL_CONDITIONED
-        reason = torch.where(reason == int(PSReason.OK), torch.full_like(reason, int(code)), reason)
-    reason = torch.where(flat.pixel_mask, reason, torch.full_like(reason, int(PSReason.MASKED)))
+    code = (PSReason.TOO_FEW_LIGHTS if k < 3 else PSReason.ILL_CONDITIONED) if degenerate else None
+    reason = _reasons(flat.pixel_mask, n_used, cond, back, inconsistent, max_condition, code)
     masked = ~flat.pixel_mask
     normals = torch.where(masked[:, None], flat.view.expand_as(normals), normals)
-    albedo = torch.where(masked, zero, albedo)
-    valid = reason == int(PSReason.OK)
-    if logger.isEnabledFor(logging.DEBUG):
-        counts = torch.bincount(reason, minlength=len(PSReason)).tolist()
-        logger.debug("robust PS: %s", {r.name: counts[r.value] for r in PSReason})
+    albedo = torch.where(masked, torch.zeros((), dtype=albedo.dtype, device=albedo.device), albedo)
+    _log_reasons(reason)
 
     s = flat.spatial
     return RobustPSResult(
         normals=normals.reshape(*s, 3),
         albedo=albedo.reshape(s),
-        valid=valid.reshape(s),
+        valid=(reason == int(PSReason.OK)).reshape(s),
         reason=reason.reshape(s),
         used=used.reshape(k, *s),
         n_used=n_used.reshape(s),

@@ -20,117 +20,52 @@ is taken (``sample_at``) and how (``demosaic``):
   scale: no usable polarisation, and possibly shadowed) nor saturated (any of its four sites at the
   top count: the Stokes vector is wrong), and lies in the mask.
 - ``mask`` (H, W) bool object mask (the capture's mask, or every pixel lit in ≥ 3 observations).
-- ``lights`` (K, 3) unit directions surface → light (directional), camera frame, and
-  ``irradiance`` (K,) relative intensities E_k. Point lights need surface points (unknown before
-  recovery): :func:`preprocess_capture` accepts ``points`` (H, W, 3) and then returns per-pixel
-  ``lights`` (K, H, W, 3) and ``irradiance`` (K, H, W) with the 1/r² fall-off.
-- ``view`` (H, W, 3) unit directions surface → camera (orthographic: (0, 0, −1)).
+- ``lights`` (K, H, W, 3) unit directions surface → light, camera frame, and ``irradiance``
+  (K, H, W), from :meth:`polarshape.lights.Lights.illuminate` at each pixel's surface point:
+  directional lights ignore where the point is; point lights (1/r² fall-off) need the points,
+  unknown before recovery, so :func:`preprocess_capture` takes ``points`` (H, W, 3).
+- ``view`` (H, W, 3) unit directions surface → camera
+  (:meth:`polarshape.cameras.PerspectiveCamera.pixel_view_directions` of the super-pixel camera).
 """
 
 from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from polarshape.brdf.geometry import sensor_plane_basis, sensor_plane_stokes
+from polarshape.cameras import SAMPLE_SITES, Camera, camera_from_spec
 from polarshape.imaging.demosaic import stokes_from_mosaic
 from polarshape.imaging.mosaic import MosaicLayout, split_mosaic
 from polarshape.imaging.pixels import counts_to_float, max_count, reduce_mask_to_superpixels
 from polarshape.io.capture import Capture
-from polarshape.render import sensor_plane_basis, sensor_plane_stokes
+from polarshape.recover.observations import RecoveryInputs
 
 logger = logging.getLogger(__name__)
 
 __all__ = [
-    "DEMOSAIC_CHOICES", "POLARISATION_SIGNAL_MIN", "SAMPLE_SITES", "RecoveryInputs", "crop_inputs", "mixed_superpixels", "polarisation_signal", "preprocess_capture",
-    "superpixel_stokes", "superpixel_view_directions",
+    "DEMOSAIC_CHOICES", "POLARISATION_SIGNAL_MIN", "SAMPLE_SITES", "RecoveryInputs", "capture_camera",
+    "mixed_superpixels", "polarisation_signal", "preprocess_capture", "superpixel_stokes",
 ]
 
 #: How the Stokes images are estimated from the mosaic.
 DEMOSAIC_CHOICES: tuple[str, ...] = ("bilinear", "superpixel")
-#: Where in each 2×2 block the Stokes vector is taken: (row, column) of a site, or None = centre.
-SAMPLE_SITES: dict[str, tuple[int, int] | None] = {
-    "centre": None, "top_left": (0, 0), "top_right": (0, 1), "bottom_left": (1, 0), "bottom_right": (1, 1),
-}
+def capture_camera(capture: Capture, sample_at: str = "centre", pixel_size_m: float | None = None) -> Camera:
+    """The camera of a capture's super-pixel grid, each ray through the block's ``sample_at`` point.
 
-
-@dataclass(frozen=True)
-class RecoveryInputs:
-    """Tensors for recovery (super-pixel resolution H × W, K lights); see the module docstring.
-
-    Attributes:
-        stokes: (K, 3, H, W) Stokes in each pixel's frame, fraction of full scale.
-        valid: (K, H, W) bool usable observations (not dark, not saturated, inside ``mask``).
-        saturated: (K, H, W) bool observations with a saturated site.
-        mask: (H, W) bool object mask.
-        lights: (K, 3) or (K, H, W, 3) unit directions surface → light, camera frame.
-        irradiance: (K,) or (K, H, W) relative irradiance E ≥ 0.
-        view: (H, W, 3) unit directions surface → camera.
-        noise_std: estimated σ of s0 from quantisation and read noise, fraction of full scale.
-        has_polarisation: False when the linear Stokes components hold no signal above the noise
-            (no polariser, or an unpolarised scene: intensity only), see :func:`polarisation_signal`.
-        offset: (row, column) of this grid's pixel (0, 0) in the full super-pixel grid (crops).
+    Args:
+        capture: the capture (camera section of capture.yaml, frame size).
+        sample_at: a key of :data:`polarshape.cameras.SAMPLE_SITES`.
+        pixel_size_m: orthographic: metres per super-pixel (default 1: super-pixel units).
     """
-
-    stokes: Tensor
-    valid: Tensor
-    saturated: Tensor
-    mask: Tensor
-    lights: Tensor
-    irradiance: Tensor
-    view: Tensor
-    noise_std: float
-    has_polarisation: bool
-    offset: tuple[int, int] = (0, 0)
-
-    @property
-    def num_lights(self) -> int:
-        return int(self.stokes.shape[0])
-
-    @property
-    def shape(self) -> tuple[int, int]:
-        return int(self.stokes.shape[-2]), int(self.stokes.shape[-1])
-
-
-def superpixel_view_directions(
-    capture: Capture, height: int, width: int, *, dtype: torch.dtype = torch.float64, sample_at: str = "centre"
-) -> Tensor:
-    """(H, W, 3) unit directions surface → camera at each super-pixel's sample point, camera frame.
-
-    Orthographic: (0, 0, −1). Perspective (pinhole at the origin, raw-pixel intrinsics): the
-    super-pixel (y, x) covers raw pixels (2y..2y+1, 2x..2x+1); its sample point is the centre
-    (2x + 0.5, 2y + 0.5) or the site ``sample_at`` (e.g. top_left: (2x, 2y)); the ray through it,
-    undistorted with ``camera.distortion`` when present (OpenCV model, ``cv2.undistortPoints``: the
-    frames are not resampled, which would mix the polariser channels), gives V = −normalise(ray).
-    """
-    if sample_at not in SAMPLE_SITES:
-        raise ValueError(f"sample_at must be one of {tuple(SAMPLE_SITES)}; got {sample_at!r}")
-    cam = capture.spec.camera
-    if cam.projection == "orthographic":
-        view = torch.zeros(height, width, 3, dtype=dtype)
-        view[..., 2] = -1.0
-        return view
-    k = cam.intrinsics
-    if k is None:
-        raise ValueError("capture.yaml: camera.intrinsics are required for a perspective camera")
-    site = SAMPLE_SITES[sample_at]
-    dy, dx = (0.5, 0.5) if site is None else (float(site[0]), float(site[1]))
-    v, u = np.meshgrid(np.arange(height) * 2.0 + dy, np.arange(width) * 2.0 + dx, indexing="ij")
-    if cam.distortion is not None and any(abs(c) > 0 for c in cam.distortion):
-        import cv2
-
-        matrix = np.array([[k.fx, 0.0, k.cx], [0.0, k.fy, k.cy], [0.0, 0.0, 1.0]])
-        points = np.stack([u, v], -1).reshape(-1, 1, 2)
-        xy = cv2.undistortPoints(points, matrix, np.asarray(cam.distortion, dtype=np.float64)).reshape(height, width, 2)
-    else:
-        xy = np.stack([(u - k.cx) / k.fx, (v - k.cy) / k.fy], -1)
-    ray = torch.from_numpy(np.concatenate([xy, np.ones((height, width, 1))], -1)).to(dtype)
-    return -ray / ray.norm(dim=-1, keepdim=True)
+    k, h2, w2 = capture.frames.shape
+    raw = camera_from_spec(capture.spec.camera, w2, h2)
+    return raw.superpixel(sample_at, pixel_size_m=1.0 if pixel_size_m is None else pixel_size_m)
 
 
 def superpixel_stokes(mosaic: Tensor, layout: MosaicLayout, *, demosaic: str = "bilinear", sample_at: str = "centre") -> Tensor:
@@ -156,7 +91,7 @@ def superpixel_stokes(mosaic: Tensor, layout: MosaicLayout, *, demosaic: str = "
 
 
 def _to_pixel_frames(stokes: Tensor, view: Tensor) -> Tensor:
-    """Invert :func:`polarshape.render.sensor_plane_stokes`: sensor-plane angles → per-pixel frames.
+    """Invert :func:`polarshape.brdf.geometry.sensor_plane_stokes`: sensor-plane angles → per-pixel frames.
 
     The forward map sends a frame direction (cos φ, sin φ) to M (cos φ, sin φ) (then normalises);
     the inverse is the same construction with M⁻¹ (per pixel 2×2).
@@ -206,60 +141,21 @@ def preprocess_capture(
     mosaic = counts_to_float(frames, bit_depth, black, dtype=torch.float64)  # (K, 2H, 2W)
     stokes = superpixel_stokes(mosaic, capture.layout, demosaic=demosaic, sample_at=sample_at)  # (K, 3, H, W)
     sites = split_mosaic(mosaic, capture.layout)  # (K, 4, H, W) at 0°, 45°, 90°, 135°
-    view = superpixel_view_directions(capture, h, w, sample_at=sample_at)  # (H, W, 3) float64
-    if capture.spec.camera.projection == "perspective":
+    camera = capture_camera(capture, sample_at)
+    view = camera.pixel_view_directions()  # (H, W, 3) float64
+    if camera.projection == "perspective":  # the sensor-plane angles are the per-pixel frames' when orthographic
         stokes = _to_pixel_frames(stokes, view)
 
-    # a 16-bit format carrying a 12-bit ADC (the IMX250MZR's PolarizeMono16) tops out at 4095·16 =
-    # 65520, not 65535: the last 12-bit step counts as saturated
-    top = (max_count(bit_depth) if bit_depth < 16 else 65520) - int(saturation_margin)
-    saturated_sites = torch.from_numpy(frames.astype(np.int64) >= top)
-    saturated = reduce_mask_to_superpixels(saturated_sites, "any")  # (K, H, W)
-    if demosaic == "bilinear":  # interpolation reaches one block further: so does a clipped site
-        saturated = F.max_pool2d(saturated.to(torch.float32).unsqueeze(1), 3, stride=1, padding=1).squeeze(1) > 0
+    saturated = _saturated(frames, bit_depth, saturation_margin, demosaic)  # (K, H, W)
     dark = sites.mean(1) * 2 < dark_threshold  # (K, H, W): the block's own s0 = ½ Σ of its four sites
-
-    if capture.mask is not None:
-        mask = torch.from_numpy(np.asarray(capture.mask, dtype=bool))
-        if tuple(mask.shape) != (h, w):
-            raise ValueError(f"capture mask has shape {tuple(mask.shape)}; expected the super-pixel shape {(h, w)}")
-    else:
-        mask = (~dark & ~saturated).sum(0) >= 3
-        logger.info("capture has no mask: using the %d pixels lit in ≥ 3 observations", int(mask.sum()))
+    mask = _mask(capture, ~dark & ~saturated, (h, w))
     mixed = mixed_superpixels(sites, ~dark & ~saturated & mask.unsqueeze(0), n_sigma=mixed_sigma)
     valid = ~dark & ~saturated & ~mixed & mask.unsqueeze(0)
-
-    intensities = torch.from_numpy(capture.light_intensities())  # (K,)
-    if any(light.position is not None for light in capture.spec.lights):
-        if points is None:
-            raise ValueError(
-                "capture.yaml has point lights (position): pass points=(H, W, 3) surface points (metres, "
-                "camera frame; e.g. from a depth estimate) to preprocess_capture, or calibrate directional lights"
-            )
-        pts = np.asarray(points, dtype=np.float64)
-        if pts.shape != (h, w, 3):
-            raise ValueError(f"points must have shape (H, W, 3) = {(h, w, 3)}; got {pts.shape}")
-        dirs = torch.from_numpy(capture.light_directions(pts))  # (K, H, W, 3)
-        irr = intensities.reshape(k, 1, 1).expand(k, h, w).clone()
-        for i, light in enumerate(capture.spec.lights):
-            if light.position is not None:
-                d2 = ((np.asarray(light.position) - pts) ** 2).sum(-1)
-                irr[i] = irr[i] / torch.from_numpy(np.maximum(d2, 1e-12))
-        lights, irradiance = dirs, irr
-    else:
-        lights = torch.from_numpy(capture.light_directions())  # (K, 3)
-        lights = lights / lights.norm(dim=-1, keepdim=True)
-        irradiance = intensities
-
+    lights, irradiance = _pixel_lights(capture, points, (h, w))
     # σ of s0 from quantisation (1 count / √12 per site, ½Σ of 4 sites) plus a read-noise floor.
     step = 1.0 / (max_count(bit_depth) - black)
     noise_std = float(step / np.sqrt(12.0))
-    lin = stokes[:, 1:].abs()[valid.unsqueeze(1).expand(-1, 2, -1, -1)]
-    has_pol = bool(lin.numel() and float(lin.max()) > 4 * step)
-    if has_pol:  # above the quantisation: is it polarisation or only noise?
-        signal = polarisation_signal(stokes[:, 1:], sites, valid)
-        has_pol = signal >= POLARISATION_SIGNAL_MIN
-        logger.debug("preprocess: polarisation signal %.3g (threshold %.2g)", signal, POLARISATION_SIGNAL_MIN)
+    has_pol = _has_polarisation(stokes, sites, valid, step)
     out = RecoveryInputs(
         stokes=stokes.to(device=device, dtype=dtype),
         valid=valid.to(device),
@@ -273,6 +169,56 @@ def preprocess_capture(
     )
     logger.debug("preprocess: K=%d, %dx%d super-pixels, %d in mask, %d valid observations", k, h, w, int(mask.sum()), int(valid.sum()))
     return out
+
+
+def _saturated(frames: np.ndarray, bit_depth: int, margin: int, demosaic: str) -> Tensor:
+    """(K, H, W) bool observations with a site at the top count (less ``margin``)."""
+    # a 16-bit format carrying a 12-bit ADC (the IMX250MZR's PolarizeMono16) tops out at 4095·16 =
+    # 65520, not 65535: the last 12-bit step counts as saturated
+    top = (max_count(bit_depth) if bit_depth < 16 else 65520) - int(margin)
+    saturated = reduce_mask_to_superpixels(torch.from_numpy(frames.astype(np.int64) >= top), "any")  # (K, H, W)
+    if demosaic == "bilinear":  # interpolation reaches one block further: so does a clipped site
+        saturated = F.max_pool2d(saturated.to(torch.float32).unsqueeze(1), 3, stride=1, padding=1).squeeze(1) > 0
+    return saturated
+
+
+def _mask(capture: Capture, usable: Tensor, shape: tuple[int, int]) -> Tensor:
+    """(H, W) bool: the capture's mask, else every pixel with ≥ 3 usable (K, H, W) observations."""
+    if capture.mask is not None:
+        mask = torch.from_numpy(np.asarray(capture.mask, dtype=bool))
+        if tuple(mask.shape) != shape:
+            raise ValueError(f"capture mask has shape {tuple(mask.shape)}; expected the super-pixel shape {shape}")
+        return mask
+    mask = usable.sum(0) >= 3
+    logger.info("capture has no mask: using the %d pixels lit in ≥ 3 observations", int(mask.sum()))
+    return mask
+
+
+def _has_polarisation(stokes: Tensor, sites: Tensor, valid: Tensor, step: float) -> bool:
+    """Whether s1, s2 (K, 3, H, W) hold a signal: above the quantisation ``step``, and coherent
+    beyond the four-site noise (:func:`polarisation_signal`)."""
+    lin = stokes[:, 1:].abs()[valid.unsqueeze(1).expand(-1, 2, -1, -1)]
+    if not (lin.numel() and float(lin.max()) > 4 * step):
+        return False
+    signal = polarisation_signal(stokes[:, 1:], sites, valid)
+    logger.debug("preprocess: polarisation signal %.3g (threshold %.2g)", signal, POLARISATION_SIGNAL_MIN)
+    return signal >= POLARISATION_SIGNAL_MIN
+
+
+def _pixel_lights(capture: Capture, points: np.ndarray | None, shape: tuple[int, int]) -> tuple[Tensor, Tensor]:
+    """L (K, H, W, 3) and E (K, H, W), float64, of the capture's lights at the surface ``points``."""
+    lights = capture.lights()
+    if points is None:
+        if lights.has_point_lights:
+            raise ValueError(
+                "capture.yaml has point lights (position): pass points=(H, W, 3) surface points (metres, "
+                "camera frame; e.g. from a depth estimate) to preprocess_capture, or calibrate directional lights"
+            )
+        points = np.zeros((*shape, 3))  # directional lights do not depend on where the surface is
+    pts = np.asarray(points, dtype=np.float64)
+    if pts.shape != (*shape, 3):
+        raise ValueError(f"points must have shape (H, W, 3) = {(*shape, 3)}; got {pts.shape}")
+    return lights.illuminate(torch.from_numpy(pts))
 
 
 def _site_redundancy(sites: Tensor) -> Tensor:
@@ -353,30 +299,3 @@ def mixed_superpixels(sites: Tensor, usable: Tensor, *, n_sigma: float | None = 
     mixed = d.abs() > n_sigma * sigma
     logger.debug("mixed super-pixel observations: %d of %d usable", int((mixed & usable).sum()), int(usable.sum()))
     return mixed
-
-
-def crop_inputs(inputs: RecoveryInputs, margin: int = 0) -> RecoveryInputs:
-    """Crop every per-pixel tensor to the bounding box of the mask (plus ``margin`` pixels).
-
-    Returns the inputs unchanged when the mask is empty.
-    """
-    rows = torch.nonzero(inputs.mask.any(1)).flatten()
-    cols = torch.nonzero(inputs.mask.any(0)).flatten()
-    if rows.numel() == 0:
-        return inputs
-    h, w = inputs.shape
-    r0, r1 = max(int(rows[0]) - margin, 0), min(int(rows[-1]) + 1 + margin, h)
-    c0, c1 = max(int(cols[0]) - margin, 0), min(int(cols[-1]) + 1 + margin, w)
-    lights = inputs.lights if inputs.lights.ndim == 2 else inputs.lights[:, r0:r1, c0:c1]
-    irr = inputs.irradiance if inputs.irradiance.ndim == 1 else inputs.irradiance[:, r0:r1, c0:c1]
-    return replace(
-        inputs,
-        stokes=inputs.stokes[..., r0:r1, c0:c1],
-        valid=inputs.valid[:, r0:r1, c0:c1],
-        saturated=inputs.saturated[:, r0:r1, c0:c1],
-        mask=inputs.mask[r0:r1, c0:c1],
-        lights=lights,
-        irradiance=irr,
-        view=inputs.view[r0:r1, c0:c1],
-        offset=(inputs.offset[0] + r0, inputs.offset[1] + c0),
-    )

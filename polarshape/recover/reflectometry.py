@@ -37,19 +37,24 @@ from torch import Tensor
 from polarshape.brdf.body_fast import body_stokes_fast
 from polarshape.brdf.fmbrdf import FMBRDFTables, build_tables
 from polarshape.brdf.geometry import shading_geometry
+from polarshape.brdf.params import FMBRDFParams
 from polarshape.brdf.surface import surface_stokes
+from polarshape.imaging.stokes import dolp
+from polarshape.recover.observations import Observations
 
 logger = logging.getLogger(__name__)
 
 __all__ = [
+    "ALPHA_GRID",
+    "BOUNDS",
     "CHANNEL_WEIGHTS",
-    "GlobalParams",
-    "Observations",
     "ReflectanceFit",
+    "channel_weights",
     "eq25_loss",
     "eq25_weights",
     "fit_reflectance",
     "huber",
+    "objective",
     "render_parts",
     "solve_albedos",
 ]
@@ -66,54 +71,8 @@ BOUNDS: dict[str, tuple[float, float]] = {
 }
 
 
-@dataclass(frozen=True)
-class Observations:
-    """Flattened observations of P pixels under K lights (camera frame).
-
-    Attributes:
-        stokes: (P, K, 3) observed Stokes, fraction of full scale, pixel frames.
-        weight: (P, K) ≥ 0 observation weights (0 = unusable: dark, saturated, masked).
-        lights: (K, 3) or (P, K, 3) unit directions surface → light.
-        irradiance: (K,) or (P, K) relative irradiance E.
-        view: (P, 3) unit directions surface → camera.
-    """
-
-    stokes: Tensor
-    weight: Tensor
-    lights: Tensor
-    irradiance: Tensor
-    view: Tensor
-
-    @property
-    def num_pixels(self) -> int:
-        return int(self.stokes.shape[0])
-
-    def select(self, index: Tensor) -> "Observations":
-        """The observations of the pixels ``index`` (1-D long or bool over P)."""
-        lights = self.lights if self.lights.ndim == 2 else self.lights[index]
-        irr = self.irradiance if self.irradiance.ndim == 1 else self.irradiance[index]
-        return Observations(self.stokes[index], self.weight[index], lights, irr, self.view[index])
-
-
 #: Lobe widths α of the coarse grid search that starts a fit (where the specular lobe is).
 ALPHA_GRID: tuple[float, ...] = (0.03, 0.06, 0.12, 0.25, 0.5, 0.9, 1.5)
-
-
-@dataclass
-class GlobalParams:
-    """Material parameters shared by all pixels (spec §2). ``k_b`` is the global (or median per-pixel) body albedo."""
-
-    ior: float = 1.5
-    alpha: float = 0.3
-    beta: float = 2.0
-    kappa: float = 0.0
-    k_s: float = 1.0
-    k_b: float = 0.5
-
-    def as_dict(self) -> dict[str, float]:
-        r_k = self.k_b / self.k_s if self.k_s > 0 else math.inf
-        return {"ior": self.ior, "alpha": self.alpha, "beta": self.beta, "kappa": self.kappa,
-                "k_s": self.k_s, "k_b": self.k_b, "r_k": r_k}
 
 
 @dataclass
@@ -128,7 +87,7 @@ class ReflectanceFit:
         seconds: wall time.
     """
 
-    params: GlobalParams
+    params: FMBRDFParams
     k_b: Tensor
     loss: float
     history: list[dict] = field(default_factory=list)
@@ -146,10 +105,7 @@ def render_parts(tables: FMBRDFTables, normals: Tensor, obs: Observations) -> tu
     Returns:
         (surface, body), each (P, K, 3) in the pixels' Stokes frames.
     """
-    n = normals.unsqueeze(1)  # (P, 1, 3)
-    lights = obs.lights.unsqueeze(0) if obs.lights.ndim == 2 else obs.lights  # (1|P, K, 3)
-    view = obs.view.unsqueeze(1)  # (P, 1, 3)
-    n, l, v = torch.broadcast_tensors(n, lights, view)
+    n, l, v = torch.broadcast_tensors(normals.unsqueeze(1), obs.lights, obs.view.unsqueeze(1))  # (P, K, 3) each
     # The two terms of polarshape.brdf.fmbrdf_stokes evaluated separately (k_s = k_b = 1), sharing
     # the shading geometry exactly as fmbrdf_stokes does: half the cost of two public calls.
     geo = shading_geometry(n, l, v)
@@ -158,12 +114,13 @@ def render_parts(tables: FMBRDFTables, normals: Tensor, obs: Observations) -> tu
         projected_area=tables.smith.projected_area, geometry=geo,
     )
     body = body_stokes_fast(tables.body, n, l, v, k_b=1.0, geometry=geo)
-    e = obs.irradiance.unsqueeze(0) if obs.irradiance.ndim == 1 else obs.irradiance  # (1|P, K)
-    e = e.unsqueeze(-1).to(surf.dtype)
+    e = obs.irradiance.unsqueeze(-1).to(surf.dtype)  # (P, K, 1)
     return surf * e, body * e
 
 
-def _channel_weights(like: Tensor, polarised: bool) -> Tensor:
+def channel_weights(like: Tensor, polarised: bool) -> Tensor:
+    """(3,) residual weights of (s0, s1, s2) (:data:`CHANNEL_WEIGHTS`; intensity only: (1, 0, 0)),
+    dtype and device of ``like``."""
     cw = list(CHANNEL_WEIGHTS) if polarised else [1.0, 0.0, 0.0]
     return like.new_tensor(cw)  # (3,)
 
@@ -185,7 +142,7 @@ def solve_albedos(
     Returns:
         k_s (0-dim), k_b (P,) (constant when not per pixel).
     """
-    w = obs.weight.unsqueeze(-1) * _channel_weights(surf, polarised)  # (P, K, 3)
+    w = obs.weight.unsqueeze(-1) * channel_weights(surf, polarised)  # (P, K, 3)
     if robust_weight is not None:
         w = w * robust_weight
     o = obs.stokes
@@ -262,8 +219,8 @@ def eq25_weights(dolp: Tensor, valid: Tensor, *, n_mad: float = 3.0) -> Tensor:
 
 
 def _dolp(s: Tensor) -> Tensor:
-    lin = torch.sqrt(s[..., 1] ** 2 + s[..., 2] ** 2 + 1e-12)
-    return lin / s[..., 0].clamp_min(1e-6)
+    """DoLP of (..., 3) Stokes vectors, s0 floored at 1e-6 (eq. 25's ρ)."""
+    return dolp(s, dim=-1, eps=1e-6)
 
 
 def eq25_loss(rendered: Tensor, observed: Tensor, valid: Tensor, weights: Tensor) -> Tensor:
@@ -309,7 +266,7 @@ def _residuals(
     k_s, k_b = solve_albedos(surf, body, obs, per_pixel=per_pixel, polarised=polarised)
     model = k_s * surf + k_b[:, None, None] * body  # (P, K, 3)
     if kind == "stokes":
-        cw = _channel_weights(surf, polarised).sqrt()
+        cw = channel_weights(surf, polarised).sqrt()
         w = obs.weight.unsqueeze(-1)
         r = (obs.stokes - model) * cw * (w / w.sum().clamp_min(1.0)).sqrt()
         return r.flatten(), k_s, k_b
@@ -323,7 +280,7 @@ def _residuals(
 
 
 def objective(
-    params: GlobalParams, normals: Tensor, obs: Observations, *, per_pixel_albedo: bool = True,
+    params: FMBRDFParams, normals: Tensor, obs: Observations, *, per_pixel_albedo: bool = True,
     polarised: bool = True, delta: float = 0.01, kind: Literal["stokes", "eq25"] = "stokes", n_grid: int = 65,
 ) -> float:
     """Objective value of ``params`` for fixed normals: Σ Huber(r, δ') (``"stokes"``) or eq. 25 (``"eq25"``).
@@ -348,7 +305,7 @@ def fit_reflectance(
     normals: Tensor,
     obs: Observations,
     *,
-    init: GlobalParams | None = None,
+    init: FMBRDFParams | None = None,
     per_pixel_albedo: bool = True,
     fit_kappa: bool = False,
     polarised: bool = True,
@@ -372,7 +329,7 @@ def fit_reflectance(
     Args:
         normals: (P, 3) unit normals, camera frame.
         obs: :class:`Observations` of the P pixels.
-        init: starting parameters (default :class:`GlobalParams` ()).
+        init: starting parameters (default :class:`FMBRDFParams` ()).
         per_pixel_albedo: one k_b per pixel (else global).
         fit_kappa: search κ too (else κ stays at ``init.kappa``).
         polarised: use s1, s2 (False: intensity only; μ is then weakly determined).
@@ -389,8 +346,7 @@ def fit_reflectance(
         :class:`ReflectanceFit`; k_b is (P,).
     """
     t0 = time.perf_counter()
-    p = GlobalParams(**vars(init)) if init is not None else GlobalParams()
-    dev, dt = normals.device, normals.dtype
+    p = FMBRDFParams(**vars(init)) if init is not None else FMBRDFParams()
     names = ["ior", "alpha", "beta"] + (["kappa"] if fit_kappa else [])
     if fit_names is not None:
         names = [n for n in names if n in fit_names]
@@ -398,90 +354,27 @@ def fit_reflectance(
         names.remove("ior")  # μ only shapes s0 weakly through Fresnel: keep it fixed without polarisation
     if fit_kappa and p.kappa < 1.0:
         p.kappa = 5.0  # start inside the range: σ-reparameterisation is flat at the bound
-    valid = obs.weight > 0
-    eqw = eq25_weights(_dolp(obs.stokes), valid) if objective_kind == "eq25" else None
-    scale = float(obs.weight.sum().clamp_min(1.0).sqrt()) if objective_kind == "stokes" else 1.0
-    d_eff = delta / scale if objective_kind == "stokes" else math.inf
+    obj = _Objective.build(normals, obs, per_pixel_albedo, polarised, objective_kind, delta, n_grid)
     history: list[dict] = []
-
-    table_grid = n_grid
-
-    def evaluate(
-        values: dict[str, float], layout: tuple[float, float, float] | None, n_grid: int = table_grid
-    ) -> tuple[Tensor, Tensor, Tensor]:
-        tables = build_tables(
-            ior=values["ior"], alpha=values["alpha"], beta=values["beta"], kappa=values["kappa"], device=dev,
-            layout=layout, n_grid=n_grid,
-        )
-        return _residuals(tables, normals, obs, per_pixel=per_pixel_albedo, polarised=polarised, kind=objective_kind, eqw=eqw)
-
-    def loss_of(r: Tensor) -> float:
-        return float(huber(r, d_eff).sum()) if objective_kind == "stokes" else float((r * r).sum())
-
-    def current() -> dict[str, float]:
-        return {"ior": p.ior, "alpha": p.alpha, "beta": p.beta, "kappa": p.kappa}
-
     with torch.no_grad():
         if grid_search:
-            # α decides where the specular lobe is; a coarse table (n_grid 33) is enough to rank them
-            best = (math.inf, p.alpha)
-            for a in ALPHA_GRID:
-                loss = loss_of(evaluate({**current(), "alpha": a}, None, n_grid=33)[0])
-                if loss < best[0]:
-                    best = (loss, a)
-            p.alpha = best[1]
-            history.append({"stage": "grid", "loss": best[0], "seconds": time.perf_counter() - t0, **p.as_dict()})
-
-        r, k_s, k_b = evaluate(current(), None)
-        loss = loss_of(r)
+            loss, p.alpha = _grid_alpha(obj, p)
+            history.append({"stage": "grid", "loss": loss, "seconds": time.perf_counter() - t0, **p.as_dict()})
+        r, k_s, k_b = obj.evaluate(_nonlinear(p), None)
+        loss = obj.loss_of(r)
         lam = 1e-3
         quiet = 0
-        h_u = 1e-3
         for it in range(max_iter):
-            layout = (p.alpha, p.beta, p.kappa)
-            u = torch.tensor([_to_u(n, getattr(p, n)) for n in names], dtype=torch.float64)
-            # r was evaluated at the current point with its own layout, which is this layout
-            # (build_tables' default): it is the base of the forward differences as it stands
-            r_base = r
-            cols = []
-            for i, n in enumerate(names):
-                vals = current()
-                vals[n] = float(_from_u(n, u[i] + h_u))
-                cols.append((evaluate(vals, layout)[0] - r_base) / h_u)
-            jac = torch.stack(cols, -1).to(torch.float64)  # (M, D)
-            rb = r_base.to(torch.float64)
-            a = rb.abs()
-            irls = torch.where(a <= d_eff, torch.ones_like(a), d_eff / a.clamp_min(1e-300))
-            jw = jac * irls.unsqueeze(-1)
-            hess = jw.T @ jac
-            grad = jw.T @ rb
-            improved = False
-            for _attempt in range(4):  # a few damping increases, then give up: converged
-                damp = hess + lam * torch.diag(hess.diagonal() + 1e-12 * hess.diagonal().max().clamp_min(1e-30))
-                try:
-                    step = -torch.linalg.solve(damp, grad)
-                except RuntimeError:
-                    lam *= 10
-                    continue
-                step = step.clamp(-2.0, 2.0)
-                if float(step.abs().max()) < 1e-6:
-                    break
-                trial = {n: float(_from_u(n, u[i] + step[i])) for i, n in enumerate(names)}
-                vals = {**current(), **trial}
-                r_t, k_s_t, k_b_t = evaluate(vals, None)
-                loss_t = loss_of(r_t)
-                if math.isfinite(loss_t) and loss_t < loss:
-                    rel = (loss - loss_t) / max(loss, 1e-300)
-                    for n, v in trial.items():
-                        setattr(p, n, v)
-                    r, k_s, k_b, loss = r_t, k_s_t, k_b_t, loss_t
-                    lam = max(lam / 3, 1e-7)
-                    improved = True
-                    break
-                lam *= 10
+            step = _lm_step(obj, p, names, r, loss, lam)
+            lam = step.lam
+            if step.improved:
+                rel = (loss - step.loss) / max(loss, 1e-300)
+                for n, v in step.values.items():
+                    setattr(p, n, v)
+                r, k_s, k_b, loss = step.r, step.k_s, step.k_b, step.loss
             history.append({"stage": "lm", "iteration": it, "loss": loss, "lambda": lam,
                             "seconds": time.perf_counter() - t0, **p.as_dict()})
-            if not improved:
+            if not step.improved:
                 break
             quiet = quiet + 1 if rel < tol else 0
             if quiet >= 2:
@@ -490,7 +383,107 @@ def fit_reflectance(
     # median, not mean: a few pixels the model cannot explain (a block straddling a texture edge)
     # get absurd albedos (measured: mean 15.1 where the median is 3.2)
     p.k_b = float(k_b[k_b > 0].median()) if bool((k_b > 0).any()) else 0.0
-    loss_val = loss  # stokes: Σ Huber(raw)/Σw = mean Huber loss, as objective() reports
-    logger.debug("reflectometry: loss %.6g after %d LM iterations: %s", loss_val, len(history), p.as_dict())
-    return ReflectanceFit(params=p, k_b=k_b.detach().to(dt), loss=loss_val, history=history,
+    # stokes: Σ Huber(raw)/Σw = mean Huber loss, as objective() reports
+    logger.debug("reflectometry: loss %.6g after %d LM iterations: %s", loss, len(history), p.as_dict())
+    return ReflectanceFit(params=p, k_b=k_b.detach().to(normals.dtype), loss=loss, history=history,
                           seconds=time.perf_counter() - t0)
+
+
+def _nonlinear(p: FMBRDFParams) -> dict[str, float]:
+    """The parameters that need a table build (μ, α, β, κ)."""
+    return {"ior": p.ior, "alpha": p.alpha, "beta": p.beta, "kappa": p.kappa}
+
+
+@dataclass(frozen=True)
+class _Objective:
+    """The residuals of :func:`fit_reflectance` at given (μ, α, β, κ), normals and observations fixed."""
+
+    normals: Tensor
+    obs: Observations
+    per_pixel: bool
+    polarised: bool
+    kind: str
+    eqw: Tensor | None
+    d_eff: float  # Huber threshold on the scaled residuals
+    n_grid: int
+
+    @classmethod
+    def build(cls, normals: Tensor, obs: Observations, per_pixel: bool, polarised: bool, kind: str,
+              delta: float, n_grid: int) -> _Objective:
+        eqw = eq25_weights(_dolp(obs.stokes), obs.weight > 0) if kind == "eq25" else None
+        scale = float(obs.weight.sum().clamp_min(1.0).sqrt()) if kind == "stokes" else 1.0
+        d_eff = delta / scale if kind == "stokes" else math.inf
+        return cls(normals, obs, per_pixel, polarised, kind, eqw, d_eff, n_grid)
+
+    def evaluate(self, values: dict[str, float], layout: tuple[float, float, float] | None,
+                 n_grid: int | None = None) -> tuple[Tensor, Tensor, Tensor]:
+        """Residuals, k_s, k_b at ``values`` (tables on ``layout``: None = their own)."""
+        tables = build_tables(
+            ior=values["ior"], alpha=values["alpha"], beta=values["beta"], kappa=values["kappa"],
+            device=self.normals.device, layout=layout, n_grid=self.n_grid if n_grid is None else n_grid,
+        )
+        return _residuals(tables, self.normals, self.obs, per_pixel=self.per_pixel, polarised=self.polarised,
+                          kind=self.kind, eqw=self.eqw)
+
+    def loss_of(self, r: Tensor) -> float:
+        return float(huber(r, self.d_eff).sum()) if self.kind == "stokes" else float((r * r).sum())
+
+
+def _grid_alpha(obj: _Objective, p: FMBRDFParams) -> tuple[float, float]:
+    """(loss, α) of the best :data:`ALPHA_GRID` lobe width: α decides where the specular lobe is,
+    and a coarse table (n_grid 33) is enough to rank them."""
+    best = (math.inf, p.alpha)
+    for a in ALPHA_GRID:
+        loss = obj.loss_of(obj.evaluate({**_nonlinear(p), "alpha": a}, None, n_grid=33)[0])
+        if loss < best[0]:
+            best = (loss, a)
+    return best
+
+
+@dataclass(frozen=True)
+class _Step:
+    improved: bool
+    lam: float
+    values: dict[str, float] = field(default_factory=dict)
+    r: Tensor | None = None
+    k_s: Tensor | None = None
+    k_b: Tensor | None = None
+    loss: float = math.inf
+
+
+def _lm_step(obj: _Objective, p: FMBRDFParams, names: list[str], r: Tensor, loss: float, lam: float,
+             h_u: float = 1e-3) -> _Step:
+    """One Levenberg–Marquardt iteration in the unconstrained parameters u of ``names``."""
+    layout = (p.alpha, p.beta, p.kappa)
+    u = torch.tensor([_to_u(n, getattr(p, n)) for n in names], dtype=torch.float64)
+    # r was evaluated at the current point with its own layout, which is this layout
+    # (build_tables' default): it is the base of the forward differences as it stands
+    cols = []
+    for i, n in enumerate(names):
+        vals = _nonlinear(p)
+        vals[n] = float(_from_u(n, u[i] + h_u))
+        cols.append((obj.evaluate(vals, layout)[0] - r) / h_u)
+    jac = torch.stack(cols, -1).to(torch.float64)  # (M, D)
+    rb = r.to(torch.float64)
+    a = rb.abs()
+    irls = torch.where(a <= obj.d_eff, torch.ones_like(a), obj.d_eff / a.clamp_min(1e-300))
+    jw = jac * irls.unsqueeze(-1)
+    hess = jw.T @ jac
+    grad = jw.T @ rb
+    for _attempt in range(4):  # a few damping increases, then give up: converged
+        damp = hess + lam * torch.diag(hess.diagonal() + 1e-12 * hess.diagonal().max().clamp_min(1e-30))
+        try:
+            step = -torch.linalg.solve(damp, grad)
+        except RuntimeError:
+            lam *= 10
+            continue
+        step = step.clamp(-2.0, 2.0)
+        if float(step.abs().max()) < 1e-6:
+            break
+        trial = {n: float(_from_u(n, u[i] + step[i])) for i, n in enumerate(names)}
+        r_t, k_s_t, k_b_t = obj.evaluate({**_nonlinear(p), **trial}, None)
+        loss_t = obj.loss_of(r_t)
+        if math.isfinite(loss_t) and loss_t < loss:
+            return _Step(True, max(lam / 3, 1e-7), trial, r_t, k_s_t, k_b_t, loss_t)
+        lam *= 10
+    return _Step(False, lam)

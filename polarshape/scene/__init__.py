@@ -1,14 +1,13 @@
-"""Simulated scenes: shapes, camera models, lights, materials, textures, ray casting, scene files.
+"""Simulated scenes: shapes, materials, textures, ray casting, scene files.
 
-Camera frame everywhere (OpenCV): x right, y down, z forward; metres. See
-:mod:`polarshape.render` for shading and :class:`polarshape.acquisition.simulated.SimulatedCamera`
+Camera frame everywhere (OpenCV): x right, y down, z forward; metres. The camera models and lights
+are shared with recovery and live in :mod:`polarshape.cameras` and :mod:`polarshape.lights`. See
+:mod:`polarshape.scene.render` for shading and :class:`polarshape.acquisition.simulated.SimulatedCamera`
 for the camera built on top.
 """
 
-from polarshape.scene.cameras import CameraModel, OrthographicCamera, PerspectiveCamera
 from polarshape.scene.config import SceneConfig, load_scene_config, parse_scene_config
 from polarshape.scene.geometry import BlobShape, MeshShape, PlaneShape, Shape, SphereShape, TorusShape
-from polarshape.scene.lights import DirectionalLight, Light, PointLight
 from polarshape.scene.materials import BaekMaterial, FMBRDFMaterial, LambertianMaterial, Material
 from polarshape.scene.objects import Scene, SceneObject
 from polarshape.scene.raycast import GeometryBuffers, cast_shadow_mask, rasterize, superpixel_ground_truth
@@ -18,18 +17,12 @@ __all__ = [
     "AlbedoTexture",
     "BaekMaterial",
     "BlobShape",
-    "CameraModel",
-    "DirectionalLight",
     "FMBRDFMaterial",
     "GeometryBuffers",
     "LambertianMaterial",
-    "Light",
     "Material",
     "MeshShape",
-    "OrthographicCamera",
-    "PerspectiveCamera",
     "PlaneShape",
-    "PointLight",
     "Scene",
     "SceneConfig",
     "SceneObject",

@@ -9,21 +9,23 @@ paths (meshes, texture images) are relative to the scene file's folder.
 from __future__ import annotations
 
 import math
+from dataclasses import fields
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic.dataclasses import dataclass as pydantic_dataclass
 
-from polarshape.acquisition.camera import PIXEL_FORMATS
-from polarshape.acquisition.noise import SensorModel
-from polarshape.brdf.fmbrdf import check_param
-from polarshape.imaging.mosaic import MosaicLayout
-from polarshape.scene.cameras import CameraModel, OrthographicCamera, PerspectiveCamera
+from polarshape.brdf.params import FMBRDFParams
+from polarshape.cameras import Camera, OrthographicCamera, PerspectiveCamera
+from polarshape.imaging.pixels import PIXEL_FORMATS
+from polarshape.io.capture import IntrinsicsSpec, LightSpec, MosaicSpec, Projection
+from polarshape.lights import DirectionalLight, Light
 from polarshape.scene.geometry import BlobShape, MeshShape, PlaneShape, Shape, SphereShape, TorusShape
-from polarshape.scene.lights import DirectionalLight, Light, PointLight
 from polarshape.scene.materials import BaekMaterial, FMBRDFMaterial, LambertianMaterial, Material
 from polarshape.scene.objects import Scene, SceneObject
+from polarshape.scene.sensor import SensorModel
 from polarshape.scene.textures import AlbedoTexture, make_texture
 
 SCENE_FORMAT = "polarshape-scene/1"
@@ -43,34 +45,19 @@ def _resolve(path: str, base_dir: Path | None) -> Path:
 # --- camera -----------------------------------------------------------------------------------
 
 
-class IntrinsicsConfig(_Strict):
-    """Pinhole intrinsics in raw-mosaic pixels."""
-
-    fx: float = Field(gt=0)
-    fy: float = Field(gt=0)
-    cx: float
-    cy: float
-
-
-class MosaicConfig(_Strict):
-    """The 2×2 polariser layout as the maker labels it (capture-format.md ``camera.mosaic``)."""
-
-    layout: tuple[tuple[float, float], tuple[float, float]] = ((90.0, 45.0), (135.0, 0.0))
-    angles: Literal["counterclockwise_on_screen", "clockwise_on_screen"] = "counterclockwise_on_screen"
-
-    def to_layout(self) -> MosaicLayout:
-        return MosaicLayout.from_maker(self.layout, self.angles)
-
-
 class CameraConfig(_Strict):
+    """``camera:``: the simulated sensor's size, projection and settings. ``intrinsics`` and
+    ``mosaic`` are the capture format's (:class:`~polarshape.io.capture.IntrinsicsSpec`,
+    :class:`~polarshape.io.capture.MosaicSpec`) and go into the capture.yaml it records."""
+
     model: str = "simulated (polarshape)"
-    projection: Literal["orthographic", "perspective"] = "orthographic"
+    projection: Projection = "orthographic"
     width: int = Field(256, gt=0, description="raw mosaic width, pixels (even)")
     height: int = Field(256, gt=0, description="raw mosaic height, pixels (even)")
     pixel_size_m: float | None = Field(None, gt=0, description="orthographic: metres per raw pixel")
     principal_point: tuple[float, float] | None = None
-    intrinsics: IntrinsicsConfig | None = None
-    mosaic: MosaicConfig = MosaicConfig()
+    intrinsics: IntrinsicsSpec | None = None
+    mosaic: MosaicSpec = MosaicSpec()
     pixel_format: str = "PolarizeMono12"
     exposure_us: float = Field(10000.0, gt=0)
     gain_db: float = 0.0
@@ -92,7 +79,7 @@ class CameraConfig(_Strict):
             raise ValueError("a perspective camera needs camera.intrinsics {fx, fy, cx, cy} (raw-mosaic pixels)")
         return self
 
-    def to_camera(self) -> CameraModel:
+    def to_camera(self) -> Camera:
         if self.projection == "orthographic":
             assert self.pixel_size_m is not None
             cx, cy = self.principal_point if self.principal_point is not None else (None, None)
@@ -105,20 +92,15 @@ class CameraConfig(_Strict):
 # --- sensor -----------------------------------------------------------------------------------
 
 
-class SensorConfig(_Strict):
-    """See :class:`polarshape.acquisition.noise.SensorModel`; plus the noise seed."""
+@pydantic_dataclass(frozen=True, config=ConfigDict(extra="forbid"))
+class SensorConfig(SensorModel):
+    """``sensor:``: the fields, defaults and checks of :class:`polarshape.scene.sensor.SensorModel`,
+    plus the noise seed."""
 
-    full_well_e: float = Field(10500.0, gt=0)
-    read_noise_e: float = Field(2.5, ge=0)
-    e_per_count_12bit: float | None = Field(None, gt=0)
-    black_level_12bit: float = Field(0.0, ge=0, lt=4095)
-    electrons_per_radiance: float = Field(80000.0, gt=0)
-    reference_exposure_us: float = Field(10000.0, gt=0)
-    shot_noise: Literal["poisson", "gaussian", "none"] = "poisson"
     seed: int = 0
 
     def to_model(self) -> SensorModel:
-        return SensorModel(**self.model_dump(exclude={"seed"}))
+        return SensorModel(**{f.name: getattr(self, f.name) for f in fields(SensorModel)})
 
 
 # --- shapes -----------------------------------------------------------------------------------
@@ -195,23 +177,18 @@ ShapeConfig = Annotated[SphereConfig | PlaneConfig | BlobConfig | TorusConfig | 
 # --- materials and textures -------------------------------------------------------------------
 
 
-class FMBRDFConfig(_Strict):
-    model: Literal["fmbrdf"]
-    ior: float = 1.5
-    k_s: float = 1.0
-    k_b: float = 0.5
-    alpha: float = 0.3
-    beta: float = 2.0
-    kappa: float = 0.0
+@pydantic_dataclass(config=ConfigDict(extra="forbid"))
+class FMBRDFConfig(FMBRDFParams):
+    """``material: {model: fmbrdf, ...}``: the fields and defaults of
+    :class:`~polarshape.brdf.FMBRDFParams`, checked against spec §2's ranges."""
 
-    @model_validator(mode="after")
-    def _in_range(self) -> FMBRDFConfig:
-        for name in ("ior", "k_s", "k_b", "alpha", "beta", "kappa"):
-            check_param(name, getattr(self, name))
-        return self
+    model: Literal["fmbrdf"] = "fmbrdf"
+
+    def __post_init__(self) -> None:
+        self.validate()
 
     def to_material(self) -> Material:
-        return FMBRDFMaterial(self.ior, self.k_s, self.k_b, self.alpha, self.beta, self.kappa)
+        return FMBRDFMaterial(**self.as_kwargs())
 
 
 class LambertianConfig(_Strict):
@@ -261,7 +238,7 @@ class TextureConfig(_Strict):
 
 class ObjectConfig(_Strict):
     shape: ShapeConfig
-    material: MaterialConfig = FMBRDFConfig(model="fmbrdf")
+    material: MaterialConfig = FMBRDFConfig()
     texture: TextureConfig | None = None
     in_mask: bool = True
 
@@ -274,41 +251,27 @@ class ObjectConfig(_Strict):
 # --- lights -----------------------------------------------------------------------------------
 
 
-class LightConfig(_Strict):
-    """Exactly one of ``direction`` (unit vector to the light), ``position`` (metres) or
-    ``zenith_deg`` + ``azimuth_deg`` (zenith from the camera axis toward the camera, −z; azimuth
-    from +x toward +y, image down)."""
+class LightConfig(LightSpec):
+    """A :class:`~polarshape.io.capture.LightSpec` (``direction`` toward the light, any length,
+    or ``position``, metres) that may instead be placed by ``zenith_deg`` + ``azimuth_deg``
+    (zenith from the camera axis toward the camera, −z; azimuth from +x toward +y, image down)."""
 
-    direction: Vec3 | None = None
-    position: Vec3 | None = None
     zenith_deg: float | None = Field(None, ge=0, lt=90)
     azimuth_deg: float | None = None
-    intensity: float = Field(1.0, gt=0)
 
     @model_validator(mode="after")
-    def _one_placement(self) -> LightConfig:
+    def _one_kind(self) -> LightConfig:  # replaces LightSpec's rule: angles are a third placement
         by_angles = self.zenith_deg is not None or self.azimuth_deg is not None
         given = [self.direction is not None, self.position is not None, by_angles]
         if sum(given) != 1:
             raise ValueError("a light needs exactly one of direction, position, or zenith_deg + azimuth_deg")
         if given[2] and (self.zenith_deg is None or self.azimuth_deg is None):
             raise ValueError("a light given by angles needs both zenith_deg and azimuth_deg")
-        if self.direction is not None:
-            if not any(self.direction):
-                raise ValueError("direction must be a non-zero vector toward the light")
-            if not self.direction[2] < 0:
-                raise ValueError(
-                    f"direction {list(self.direction)} must have z < 0: it points from the object toward the light "
-                    "in the camera frame (+z into the scene), so a light on the camera side has z < 0"
-                )
         return self
 
     def to_light(self) -> Light:
-        if self.position is not None:
-            return PointLight(self.position, self.intensity)
-        if self.direction is not None:
-            return DirectionalLight(self.direction, self.intensity)
-        assert self.zenith_deg is not None and self.azimuth_deg is not None
+        if self.zenith_deg is None or self.azimuth_deg is None:
+            return super().to_light()
         z, a = math.radians(self.zenith_deg), math.radians(self.azimuth_deg)
         return DirectionalLight((math.sin(z) * math.cos(a), math.sin(z) * math.sin(a), -math.cos(z)), self.intensity)
 

@@ -25,6 +25,8 @@ import torch
 import trimesh
 from torch import Tensor
 
+from polarshape.checks import to_numpy
+
 logger = logging.getLogger(__name__)
 
 #: Smallest ray parameter counted as a hit, relative to the shape's bounding radius (avoids
@@ -226,7 +228,7 @@ class _Open3DRaycaster:
         """Cast (N, 3) rays; returns numpy ``t_hit`` (N,), ``primitive_ids`` (N,),
         ``primitive_uvs`` (N, 2) barycentrics (hit = (1−u−v) v0 + u v1 + v v2) and
         ``primitive_normals`` (N, 3)."""
-        rays = torch.cat([origins, directions], dim=-1).detach().to("cpu", torch.float32).numpy()
+        rays = to_numpy(torch.cat([origins, directions], dim=-1), np.float32)
         out = self.scene.cast_rays(self._o3d.core.Tensor(np.ascontiguousarray(rays)))
         return {key: out[key].numpy() for key in ("t_hit", "primitive_ids", "primitive_uvs", "primitive_normals")}
 
@@ -314,7 +316,7 @@ class MeshShape(Shape):
         # a ray that meets a face from behind sees its other side
         face_n = np.zeros_like(normals)
         face_n[hit] = self._face_normals[out["primitive_ids"][hit].astype(np.int64)]
-        back = (face_n * directions.detach().cpu().numpy()).sum(-1) > 0
+        back = (face_n * to_numpy(directions)).sum(-1) > 0
         normals[back] *= -1.0
         t = torch.as_tensor(out["t_hit"], dtype=origins.dtype, device=origins.device)
         return t, torch.as_tensor(normals, dtype=origins.dtype, device=origins.device)

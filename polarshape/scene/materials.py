@@ -15,7 +15,8 @@ import torch
 from torch import Tensor
 
 from polarshape.brdf.baselines import baek_pbrdf_stokes, lambertian_stokes
-from polarshape.brdf.fmbrdf import FMBRDFTables, build_tables, check_param, fmbrdf_stokes
+from polarshape.brdf.fmbrdf import FMBRDFTables, fmbrdf_stokes
+from polarshape.brdf.params import FMBRDFParams
 
 
 @runtime_checkable
@@ -36,42 +37,35 @@ class Material(Protocol):
 
 
 @dataclass
-class FMBRDFMaterial:
-    """The Fresnel Microfacet BRDF (spec §2–§7), via :func:`polarshape.brdf.fmbrdf_stokes`.
+class FMBRDFMaterial(FMBRDFParams):
+    """The Fresnel Microfacet BRDF (spec §2–§7), via :func:`polarshape.brdf.fmbrdf_stokes`: an
+    :class:`~polarshape.brdf.FMBRDFParams` (checked on construction) that renders.
 
     The fast evaluator's tables for (ior, alpha, beta, kappa) are built once per device and kept,
-    so rendering many lights costs one table build.
+    so rendering many lights costs one table build. ``k_b`` is scaled per point by a texture.
 
     Attributes:
-        ior: μ. k_s: surface albedo. k_b: body albedo (scaled per point by a texture).
-        alpha: roughness, radians. beta: shape of D. kappa: microfacet correlation.
         exact: use the reference quadrature instead of the tables (slow; tests only).
     """
 
-    ior: float = 1.5
-    k_s: float = 1.0
-    k_b: float = 0.5
-    alpha: float = 0.3
-    beta: float = 2.0
-    kappa: float = 0.0
     exact: bool = False
     _tables: dict[str, FMBRDFTables] = field(default_factory=dict, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
-        for name in ("ior", "k_s", "k_b", "alpha", "beta", "kappa"):
-            check_param(name, float(getattr(self, name)))
+        self.validate()
 
-    def _tables_on(self, device: torch.device) -> FMBRDFTables:
+    def tables_on(self, device: torch.device | str) -> FMBRDFTables:
+        """This material's fast-path tables on ``device``, built once per device and kept."""
         key = str(device)
         if key not in self._tables:
-            self._tables[key] = build_tables(ior=self.ior, alpha=self.alpha, beta=self.beta, kappa=self.kappa, device=device)
+            self._tables[key] = self.build_tables(device=device)
         return self._tables[key]
 
     def stokes(self, normal: Tensor, light: Tensor, view: Tensor, albedo_scale: Tensor) -> Tensor:
-        params = dict(ior=self.ior, k_s=self.k_s, k_b=self.k_b * albedo_scale, alpha=self.alpha, beta=self.beta, kappa=self.kappa)
+        params = {**self.as_kwargs(), "k_b": self.k_b * albedo_scale}
         if self.exact:
             return fmbrdf_stokes(normal, light, view, exact=True, **params)
-        return fmbrdf_stokes(normal, light, view, tables=self._tables_on(normal.device), **params)
+        return fmbrdf_stokes(normal, light, view, tables=self.tables_on(normal.device), **params)
 
 
 @dataclass

@@ -7,9 +7,9 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from polarshape.scene.cameras import CameraModel
+from polarshape.cameras import Camera
+from polarshape.lights import Light
 from polarshape.scene.geometry import Shape
-from polarshape.scene.lights import Light
 from polarshape.scene.materials import Material
 from polarshape.scene.raycast import GeometryBuffers, rasterize
 from polarshape.scene.textures import AlbedoTexture
@@ -37,7 +37,7 @@ class SceneObject:
 class Scene:
     """What a simulated camera sees: camera model, objects, lights (camera frame, metres)."""
 
-    camera: CameraModel
+    camera: Camera
     objects: tuple[SceneObject, ...]
     lights: tuple[Light, ...]
 

@@ -13,9 +13,9 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from polarshape.scene.cameras import CameraModel
+from polarshape.cameras import Camera
+from polarshape.lights import Light
 from polarshape.scene.geometry import Shape
-from polarshape.scene.lights import Light
 
 logger = logging.getLogger(__name__)
 
@@ -44,7 +44,7 @@ class GeometryBuffers:
 
 def rasterize(
     shapes: Sequence[Shape],
-    camera: CameraModel,
+    camera: Camera,
     *,
     device: torch.device | str = "cpu",
     dtype: torch.dtype = torch.float64,
@@ -52,7 +52,7 @@ def rasterize(
     """Cast one ray per pixel of ``camera`` into ``shapes``; the nearest hit wins.
 
     Example:
-        >>> from polarshape.scene.cameras import OrthographicCamera
+        >>> from polarshape.cameras import OrthographicCamera
         >>> from polarshape.scene.geometry import SphereShape
         >>> g = rasterize([SphereShape((0, 0, 1), 0.01)], OrthographicCamera(64, 64, 4e-4))
         >>> g.normals.shape, bool(g.mask[32, 32])

@@ -3,15 +3,22 @@
 Conventions (spec §1): camera frame x right, y down, z forward; pixel (u, v) = (column, row) with
 pixel centres at integer coordinates; normals are unit vectors facing the camera (N·V > 0, so
 n_z < 0 under an orthographic camera). Depth z is the camera-frame z coordinate of the surface
-point (metres, or whatever unit ``pixel_size`` / the scene is in), not the distance along the ray.
+point (metres, or whatever unit ``camera.pixel_size_m`` / the scene is in), not the distance along the
+ray.
+
+**Camera.** A :mod:`polarshape.cameras` camera at the normal map's grid (for a capture, the
+super-pixel camera ``camera.superpixel("centre", pixel_size_m=...)``) says which of the two models below
+applies; only :func:`_field_model` tells them apart. Perspective integration uses the pinhole
+intrinsics (``camera.matrix``); lens distortion is not modelled here.
 
 **Gradients.** A surface point is P(u, v).
-- Orthographic: P = (s·u, s·v, z) with s = ``pixel_size`` (metres per pixel). The camera-facing
+- Orthographic: P = (s·u, s·v, z) with s = ``camera.pixel_size_m`` (metres per pixel). The camera-facing
   normal is ∝ P_v × P_u ∝ (s z_u, s z_v, −s²), so ∂z/∂x = −n_x/n_z = p and ∂z/∂y = −n_y/n_z = q
   (x, y metric, y down); per pixel ∂z/∂u = s·p, ∂z/∂v = s·q.
 - Perspective (Cao et al. 2022, "Bilateral Normal Integration", log-depth form): P = z·r with
-  r = K⁻¹(u, v, 1)ᵀ. From n·P_u = n·P_v = 0: ∂log z/∂u = −n·(K⁻¹e₁)/(n·r) and
-  ∂log z/∂v = −n·(K⁻¹e₂)/(n·r); with zero skew these are −n_x/(f_x·n·r) and −n_y/(f_y·n·r).
+  r = K⁻¹(u, v, 1)ᵀ (``camera.unproject`` of unit depth). From n·P_u = n·P_v = 0:
+  ∂log z/∂u = −n·(K⁻¹e₁)/(n·r) and ∂log z/∂v = −n·(K⁻¹e₂)/(n·r); with zero skew these are
+  −n_x/(f_x·n·r) and −n_y/(f_y·n·r).
   n·r < 0 for a camera-facing normal.
 
 **Discretisation.** Every pixel with a right (lower) neighbour in the mask has a forward difference
@@ -53,27 +60,17 @@ import scipy.sparse.linalg as spla
 from numpy.typing import NDArray
 from scipy.special import expit
 
+from polarshape.cameras import Camera, OrthographicCamera, PerspectiveCamera
+from polarshape.checks import to_numpy
+
 logger = logging.getLogger(__name__)
 
-Projection = Literal["orthographic", "perspective"]
 Method = Literal["smooth", "bilateral"]
 Solver = Literal["auto", "direct", "cg", "amg"]
 
 _FOUR_CONNECTED = np.array([[0, 1, 0], [1, 1, 1], [0, 1, 0]], dtype=bool)
 # Below this many unknowns a sparse LU factorisation beats iterative solvers (benchmarks/integration.py).
 _DIRECT_MAX_UNKNOWNS = 20_000
-
-
-def _to_numpy(array: Any, name: str) -> NDArray[Any]:
-    """Accept numpy arrays and (CPU or CUDA) torch tensors; return a numpy array."""
-    if hasattr(array, "detach") and hasattr(array, "cpu"):
-        array = array.detach().cpu().numpy()
-    if not isinstance(array, np.ndarray):
-        try:
-            array = np.asarray(array)
-        except Exception as exc:  # pragma: no cover - exotic inputs
-            raise TypeError(f"{name} must be a numpy array or torch tensor; got {type(array).__name__}") from exc
-    return array
 
 
 def check_normal_map(
@@ -92,14 +89,14 @@ def check_normal_map(
     Raises:
         ValueError: wrong shapes, an empty mask, non-finite or non-unit normals inside the mask.
     """
-    n = _to_numpy(normals, "normals")
+    n = to_numpy(normals)
     if n.ndim != 3 or n.shape[2] != 3:
         raise ValueError(f"normals must have shape (H, W, 3) (camera-frame unit vectors); got {n.shape}")
     n = n.astype(np.float64, copy=False)
     if mask is None:
         m = np.all(np.isfinite(n), axis=2)
     else:
-        m = _to_numpy(mask, "mask")
+        m = to_numpy(mask)
         if m.shape != n.shape[:2]:
             raise ValueError(f"mask must have shape (H, W) = {n.shape[:2]} to match normals; got {m.shape}")
         m = m.astype(bool) if m.dtype == bool else m != 0
@@ -121,29 +118,6 @@ def check_normal_map(
     return n, m
 
 
-def _check_camera(
-    projection: str, pixel_size: float, K: Any | None
-) -> NDArray[np.float64] | None:
-    """Validate the projection model; returns K (3, 3) float64 for perspective, None otherwise."""
-    if projection == "orthographic":
-        if not (np.isfinite(pixel_size) and pixel_size > 0):
-            raise ValueError(f"pixel_size must be a positive number of metres per pixel; got {pixel_size!r}")
-        return None
-    if projection == "perspective":
-        if K is None:
-            raise ValueError("projection='perspective' needs K, the (3, 3) intrinsic matrix at the normal map's resolution")
-        k = _to_numpy(K, "K").astype(np.float64)
-        if k.shape != (3, 3) or not np.all(np.isfinite(k)):
-            raise ValueError(f"K must be a finite (3, 3) intrinsic matrix; got shape {k.shape}")
-        if k[0, 0] <= 0 or k[1, 1] <= 0 or not np.allclose(k[2], [0.0, 0.0, 1.0]) or k[1, 0] != 0:
-            raise ValueError(
-                "K must be upper triangular [[fx, skew, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0; "
-                f"got {k.tolist()}"
-            )
-        return k
-    raise ValueError(f"projection must be 'orthographic' or 'perspective'; got {projection!r}")
-
-
 #: Default slope cap: normals tilted more than ≈ 87° from the line of sight (n·r̂ > −0.05) count as
 #: grazing, slope ≤ |n_xy| / 0.05 ≈ 20. Such estimates are unreliable (a super-pixel there spans a
 #: large depth range) and, uncapped, a handful of them dominates the least-squares integration:
@@ -152,21 +126,120 @@ def _check_camera(
 GRAZING_EPS = 0.05
 
 
+class _OrthographicField:
+    """Orthographic integration: the field is f = z / s (pixel units), slopes −n_x/n_z, −n_y/n_z.
+
+    Attributes:
+        field_scale: s, metres per pixel (a slope in metres per pixel / s = a slope of f).
+        axis_scale: (2,) factor turning a difference of f along u / v into pixel-footprint units.
+    """
+
+    def __init__(self, camera: OrthographicCamera) -> None:
+        self.field_scale = float(camera.pixel_size_m)
+        self.axis_scale = np.array([1.0, 1.0])
+
+    def gradients(self, n: NDArray[np.float64], grazing_eps: float) -> tuple[NDArray[np.float64], ...]:
+        """(g_u, g_v, clamped), each (H, W), of normals (H, W, 3): see :func:`surface_gradients`."""
+        # n·r̂ with r̂ = (0, 0, 1): the denominator is n_z; dz/dx = −n_x/n_z, dz/dy = −n_y/n_z.
+        denom = n[..., 2]
+        clamped = ~(denom <= -grazing_eps) & np.isfinite(denom)
+        denom = np.where(clamped, -grazing_eps, denom)
+        g_u = -self.field_scale * n[..., 0] / denom
+        g_v = -self.field_scale * n[..., 1] / denom
+        return g_u, g_v, clamped
+
+    def facing_away(self, n: NDArray[np.float64]) -> NDArray[np.bool_]:
+        """(H, W) normals (H, W, 3) with n·r > 0."""
+        return n[..., 2] > 0
+
+    def field_of_depth(self, depth: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Field f of depths (n,) (NaN stays NaN)."""
+        return depth / self.field_scale
+
+    def depth_of_field(
+        self, field: NDArray[np.float64], init_field: NDArray[np.float64], graph: _PixelGraph, reference_depth: float
+    ) -> NDArray[np.float64]:
+        """(n,) depth of the solved field (n,), one additive constant per component (the gauge rule)."""
+        depth_rel = field * self.field_scale  # (n,) z up to a constant
+        offsets = init_field * self.field_scale - depth_rel
+        return depth_rel + _component_constants(offsets, depth_rel, reference_depth, graph)
+
+
+class _PerspectiveField:
+    """Perspective integration: the field is f = log z, slopes from the pinhole rays r = K⁻¹(u, v, 1).
+
+    Attributes:
+        field_scale: 1 (the gradients already are gradients of log z).
+        axis_scale: (2,) (f_x, f_y): a difference of log z along u / v in pixel-footprint units.
+    """
+
+    def __init__(self, camera: PerspectiveCamera) -> None:
+        self.rays = camera.unproject(np.ones((camera.height, camera.width)))  # (H, W, 3) r = K⁻¹(u, v, 1), r_z = 1
+        self.k_inv = np.linalg.inv(camera.matrix)  # (3, 3)
+        self.field_scale = 1.0
+        self.axis_scale = np.array([float(camera.fx), float(camera.fy)])
+
+    def gradients(self, n: NDArray[np.float64], grazing_eps: float) -> tuple[NDArray[np.float64], ...]:
+        """(g_u, g_v, clamped), each (H, W), of normals (H, W, 3): see :func:`surface_gradients`."""
+        ray_norm = np.linalg.norm(self.rays, axis=-1)  # (H, W)
+        n_dot_rhat = np.einsum("hwc,hwc->hw", n, self.rays) / ray_norm
+        clamped = ~(n_dot_rhat <= -grazing_eps) & np.isfinite(n_dot_rhat)
+        n_dot_r = np.where(clamped, -grazing_eps, n_dot_rhat) * ray_norm  # (H, W)
+        # n·P_u = 0 with P_u = z_u r + z K⁻¹e₁  ⇒  ∂log z/∂u = −n·(K⁻¹e₁) / (n·r); same for v.
+        g_u = -(n @ self.k_inv[:, 0]) / n_dot_r
+        g_v = -(n @ self.k_inv[:, 1]) / n_dot_r
+        return g_u, g_v, clamped
+
+    def facing_away(self, n: NDArray[np.float64]) -> NDArray[np.bool_]:
+        """(H, W) normals (H, W, 3) with n·r > 0."""
+        return np.einsum("hwc,hwc->hw", n, self.rays) > 0
+
+    def field_of_depth(self, depth: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Field f = log z of depths (n,); NaN where unknown or not in front of the camera."""
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.where(depth > 0, np.log(depth), np.nan)
+
+    def depth_of_field(
+        self, field: NDArray[np.float64], init_field: NDArray[np.float64], graph: _PixelGraph, reference_depth: float
+    ) -> NDArray[np.float64]:
+        """(n,) depth of the solved field (n,), one scale per component (the gauge rule)."""
+        return np.exp(field + _component_constants(init_field - field, field, np.log(reference_depth), graph))
+
+
+_FieldModel = _OrthographicField | _PerspectiveField
+_FIELD_MODELS: dict[type, type] = {OrthographicCamera: _OrthographicField, PerspectiveCamera: _PerspectiveField}
+
+
+def _field_model(camera: Camera, shape: tuple[int, ...]) -> _FieldModel:
+    """The integration model of ``camera`` (the one place that tells the projections apart).
+
+    Args:
+        camera: a :mod:`polarshape.cameras` camera whose grid is the normal map's.
+        shape: (H, W) of the normal map.
+    """
+    model = _FIELD_MODELS.get(type(camera))
+    if model is None:
+        raise ValueError(
+            "camera must be a polarshape.cameras.OrthographicCamera or PerspectiveCamera at the normal map's "
+            f"grid; got {type(camera).__name__}"
+        )
+    if (camera.height, camera.width) != tuple(shape):
+        raise ValueError(
+            f"the camera's grid is (H, W) = {(camera.height, camera.width)} but the normal map's is {tuple(shape)}: "
+            "pass the camera at the normal map's grid (for a capture: camera.superpixel(...))"
+        )
+    return model(camera)
+
+
 def surface_gradients(
-    normals: Any,
-    *,
-    projection: Projection = "orthographic",
-    pixel_size: float = 1.0,
-    K: Any | None = None,
-    grazing_eps: float = GRAZING_EPS,
+    normals: Any, *, camera: Camera, grazing_eps: float = GRAZING_EPS
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]:
     """Per-pixel gradients of the integrated field, derived from the normals (see module docstring).
 
     Args:
         normals: (H, W, 3) camera-frame unit normals facing the camera (NaN allowed: gives NaN).
-        projection: "orthographic" (field z, metres) or "perspective" (field log z).
-        pixel_size: metres per pixel (orthographic).
-        K: (3, 3) intrinsics at this resolution (perspective).
+        camera: the camera at the normal map's grid: orthographic (field z, metres) or perspective
+            (field log z).
         grazing_eps: normals with n·r̂ > −grazing_eps (grazing or facing away; r̂ the unit ray) are
             clamped to n·r̂ = −grazing_eps, which caps the slope instead of dividing by ~0
             (default :data:`GRAZING_EPS`).
@@ -178,35 +251,14 @@ def surface_gradients(
 
     Example:
         >>> n = np.zeros((2, 2, 3)); n[..., 0] = 0.6; n[..., 2] = -0.8   # plane z = 0.75 x + c
-        >>> gu, gv, _ = surface_gradients(n)
+        >>> gu, gv, _ = surface_gradients(n, camera=OrthographicCamera(2, 2, even=False))
         >>> round(float(gu[0, 0]), 12), round(float(gv[0, 0]), 12)
         (0.75, 0.0)
     """
-    n = _to_numpy(normals, "normals").astype(np.float64, copy=False)
+    n = to_numpy(normals).astype(np.float64, copy=False)
     if n.ndim != 3 or n.shape[2] != 3:
         raise ValueError(f"normals must have shape (H, W, 3); got {n.shape}")
-    k = _check_camera(projection, pixel_size, K)
-    h, w = n.shape[:2]
-    if k is None:
-        # n·r̂ with r̂ = (0, 0, 1): the denominator is n_z; dz/dx = −n_x/n_z, dz/dy = −n_y/n_z.
-        denom = n[..., 2]
-        clamped = ~(denom <= -grazing_eps) & np.isfinite(denom)
-        denom = np.where(clamped, -grazing_eps, denom)
-        g_u = -pixel_size * n[..., 0] / denom
-        g_v = -pixel_size * n[..., 1] / denom
-        return g_u, g_v, clamped
-    k_inv = np.linalg.inv(k)
-    vv, uu = np.mgrid[0:h, 0:w].astype(np.float64)
-    pix = np.stack([uu, vv, np.ones_like(uu)], axis=-1)  # (H, W, 3)
-    ray = pix @ k_inv.T  # (H, W, 3) r = K⁻¹(u, v, 1), r_z = 1
-    ray_norm = np.linalg.norm(ray, axis=-1)  # (H, W)
-    n_dot_rhat = np.einsum("hwc,hwc->hw", n, ray) / ray_norm
-    clamped = ~(n_dot_rhat <= -grazing_eps) & np.isfinite(n_dot_rhat)
-    n_dot_r = np.where(clamped, -grazing_eps, n_dot_rhat) * ray_norm  # (H, W)
-    # n·P_u = 0 with P_u = z_u r + z K⁻¹e₁  ⇒  ∂log z/∂u = −n·(K⁻¹e₁) / (n·r); same for v.
-    g_u = -(n @ k_inv[:, 0]) / n_dot_r
-    g_v = -(n @ k_inv[:, 1]) / n_dot_r
-    return g_u, g_v, clamped
+    return _field_model(camera, n.shape[:2]).gradients(n, grazing_eps)
 
 
 @dataclass(frozen=True)
@@ -254,7 +306,6 @@ def _pixel_graph(mask: NDArray[np.bool_]) -> _PixelGraph:
     # First node of each component (nodes are in raster order).
     _, pinned = np.unique(component, return_index=True)
     return _PixelGraph(index, tail, head, axis, incidence, component, pinned.astype(np.int64))
-
 
 
 def _bilateral_weights(
@@ -373,6 +424,26 @@ def _component_median(values: NDArray[np.float64], component: NDArray[np.int64],
     return out
 
 
+def _component_constants(
+    offsets: NDArray[np.float64], relative: NDArray[np.float64], reference: float, graph: _PixelGraph
+) -> NDArray[np.float64]:
+    """(n,) the gauge constant of each node's component (module docstring: gauge).
+
+    Args:
+        offsets: (n,) depth_init − solution in the gauge's space (NaN where depth_init is unknown).
+        relative: (n,) the solution in the gauge's space.
+        reference: the reference depth in the gauge's space.
+        graph: the pixel graph.
+
+    Returns:
+        The median offset of the component, or ``reference − median(relative)`` where it has none.
+    """
+    n_comp = graph.pinned.shape[0]
+    const = _component_median(offsets, graph.component, n_comp)
+    fallback = reference - _component_median(relative, graph.component, n_comp)
+    return np.where(np.isfinite(const), const, fallback)[graph.component]
+
+
 @dataclass
 class IntegrationReport:
     """Diagnostics of one :func:`integrate_normals` call (pass an instance as ``report=`` to fill it).
@@ -396,13 +467,166 @@ class IntegrationReport:
     seconds: float = 0.0
 
 
+@dataclass(frozen=True)
+class _BilateralOptions:
+    """The re-weighting options of :func:`integrate_normals` (checked even for the smooth method)."""
+
+    k: float
+    max_iter: int
+    tol: float
+    weight_tol: float
+    weight_floor: float
+
+    def __post_init__(self) -> None:
+        k, max_iter, tol, weight_tol, weight_floor = self.k, self.max_iter, self.tol, self.weight_tol, self.weight_floor
+        if not (k > 0 and max_iter >= 1 and tol >= 0 and weight_tol >= 0 and 0 < weight_floor < 1):
+            raise ValueError(
+                "bilateral options out of range: need k > 0, max_iter >= 1, tol >= 0, weight_tol >= 0, "
+                f"0 < weight_floor < 1; got k={k}, max_iter={max_iter}, tol={tol}, weight_tol={weight_tol}, "
+                f"weight_floor={weight_floor}"
+            )
+
+
+def _checked_slopes(
+    nmap: NDArray[np.float64], mask: NDArray[np.bool_], model: _FieldModel, grazing_eps: float
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """(g_u, g_v), each (H, W), of the normals (H, W, 3); warns about capped slopes and refuses a
+    normal map that mostly faces away from the camera (a flipped sign convention)."""
+    g_u, g_v, clamped = model.gradients(nmap, grazing_eps)
+    n_clamped = int((clamped & mask).sum())
+    if n_clamped:
+        n_away = int((model.facing_away(nmap) & mask).sum())
+        if n_away > 0.5 * mask.sum():
+            raise ValueError(
+                f"{n_away} of {int(mask.sum())} normals face away from the camera (n·r > 0); polarshape's "
+                "camera frame has n_z < 0 for a surface facing an orthographic camera (spec §1): flip the "
+                "normals' sign or convert them from another convention"
+            )
+        logger.warning(
+            "%d normals are grazing or face away from the camera (%d facing away); their slope is capped",
+            n_clamped,
+            n_away,
+        )
+    return g_u, g_v
+
+
+def _drop_small_components(mask: NDArray[np.bool_], min_component_size: int) -> NDArray[np.bool_]:
+    """(H, W) the mask without its 4-connected components of fewer than ``min_component_size`` pixels."""
+    if min_component_size <= 1:
+        return mask
+    labels, n_lab = scipy.ndimage.label(mask, structure=_FOUR_CONNECTED)
+    sizes = np.bincount(labels.ravel(), minlength=n_lab + 1)
+    small = (sizes < min_component_size) & (np.arange(n_lab + 1) > 0)
+    if not small.any():
+        return mask
+    dropped = small[labels]
+    logger.info("leaving %d components (%d pixels) below %d pixels out", int(small.sum()), int(dropped.sum()), min_component_size)
+    mask = mask & ~dropped
+    if not mask.any():
+        raise ValueError(f"every connected component of the mask is smaller than min_component_size={min_component_size}")
+    return mask
+
+
+def _initial_field(
+    depth_init: Any | None, mask: NDArray[np.bool_], graph: _PixelGraph, model: _FieldModel
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The field of ``depth_init`` and the solver's start.
+
+    Returns:
+        (init_field (n,), NaN where depth_init is unknown or absent; x0 (n,), init_field with each
+        component's median in its gaps (0 without one), shifted so that the pinned nodes are 0).
+    """
+    init_field = np.full(graph.n, np.nan)
+    if depth_init is not None:
+        init = to_numpy(depth_init).astype(np.float64)
+        if init.shape != mask.shape:
+            raise ValueError(f"depth_init must have shape (H, W) = {mask.shape}; got {init.shape}")
+        init_field = model.field_of_depth(init[mask])
+    init_median = _component_median(init_field, graph.component, graph.pinned.shape[0])  # (C,)
+    x0 = np.where(np.isfinite(init_field), init_field, np.nan_to_num(init_median)[graph.component])
+    return init_field, x0 - x0[graph.pinned][graph.component]  # the pinned gauge: pinned node at 0
+
+
+_Pair = tuple[NDArray[np.float64], NDArray[np.float64]]
+
+
+def _weighted_solve(
+    graph: _PixelGraph,
+    linear: _LinearSolver,
+    weights: _Pair,
+    targets: _Pair,
+    field: NDArray[np.float64],
+    weight_floor: float,
+) -> tuple[NDArray[np.float64], float]:
+    """One weighted least-squares solve, warm-started at ``field`` (n,).
+
+    Args:
+        weights: (w_tail, w_head), each (E,): w⁺ of each edge's tail pixel and w⁻ of its head pixel.
+        targets: (g_tail, g_head), each (E,): the field's gradient along the edge at its two pixels.
+        weight_floor: lower bound of an edge's total weight.
+
+    Returns:
+        (field (n,), energy Σ w⁺ (Df − g⁺)² + w⁻ (Df − g⁻)²).
+    """
+    (w_tail, w_head), (g_tail, g_head) = weights, targets
+    coeff = np.maximum(w_tail + w_head, weight_floor)
+    lap, rhs = _system(graph, coeff, w_tail * g_tail + w_head * g_head)
+    field = linear(lap, rhs, field)
+    diff = graph.incidence @ field  # (E,)
+    return field, float(np.sum(w_tail * (diff - g_tail) ** 2 + w_head * (diff - g_head) ** 2))
+
+
+def _bilateral_solve(
+    graph: _PixelGraph,
+    linear: _LinearSolver,
+    targets: _Pair,
+    x0: NDArray[np.float64],
+    axis_scale: NDArray[np.float64],
+    options: _BilateralOptions,
+    *,
+    init_complete: bool,
+) -> tuple[NDArray[np.float64], float, int]:
+    """Re-weighted solves until the energy and the weights settle (module docstring: discretisation).
+
+    Args:
+        init_complete: x0 comes from a depth_init known everywhere in the mask.
+
+    Returns:
+        (field (n,), final energy, number of solves).
+    """
+    g_tail = targets[0]
+    if init_complete:
+        # A complete depth_init already shows its cliffs: start from its weights, not from ½.
+        weights = _bilateral_weights(graph, x0, axis_scale, options.k)
+    else:
+        weights = (np.full(graph.tail.shape, 0.5), np.full(graph.tail.shape, 0.5))
+    field, energy_prev = x0, np.inf
+    energy_unit = float(graph.tail.shape[0]) * (1.0 + float(np.mean(g_tail**2)) if g_tail.size else 1.0)
+    for it in range(options.max_iter):
+        field, energy = _weighted_solve(graph, linear, weights, targets, field, options.weight_floor)
+        new = _bilateral_weights(graph, field, axis_scale, options.k)
+        weight_change = float(max(np.abs(a - b).max(initial=0.0) for a, b in zip(new, weights)))
+        weights = new
+        change = abs(energy_prev - energy) / max(energy_prev, 1e-300) if np.isfinite(energy_prev) else np.inf
+        logger.debug(
+            "bilateral iteration %d: energy %.6g, relative change %.3g, largest weight change %.3g",
+            it + 1,
+            energy,
+            change,
+            weight_change,
+        )
+        exact_fit = energy <= 1e-20 * energy_unit  # integrable field solved to rounding error
+        if weight_change < options.weight_tol and (change < options.tol or exact_fit):
+            break
+        energy_prev = energy
+    return field, energy, it + 1
+
+
 def integrate_normals(
     normals: Any,
     mask: Any | None,
     *,
-    projection: Projection = "orthographic",
-    pixel_size: float = 1.0,
-    K: Any | None = None,
+    camera: Camera,
     method: Method = "smooth",
     depth_init: Any | None = None,
     reference_depth: float = 1.0,
@@ -424,9 +648,9 @@ def integrate_normals(
         normals: (H, W, 3) camera-frame unit normals facing the camera (n_z < 0 orthographic);
             numpy array or torch tensor (any device); ignored outside the mask.
         mask: (H, W) bool, pixels to integrate; None = the pixels whose normals are finite.
-        projection: "orthographic" or "perspective".
-        pixel_size: metres per pixel (orthographic); depth comes out in the same unit.
-        K: (3, 3) intrinsics at the normal map's resolution, pixel centres at integer (u, v) (perspective).
+        camera: a :mod:`polarshape.cameras` camera whose grid is the normal map's (H, W), pixel centres
+            at integer (u, v): orthographic (depth comes out in the unit of ``pixel_size_m``) or
+            perspective (its pinhole intrinsics). For a capture: ``camera.superpixel("centre", ...)``.
         method: "smooth" (least squares) or "bilateral" (discontinuity-preserving, Cao et al. 2022).
         depth_init: optional (H, W) depth (same unit; NaN where unknown): warm start of the solver, the
             initial bilateral weights, and the per-component constant (see the gauge rule).
@@ -456,151 +680,57 @@ def integrate_normals(
 
     Raises:
         ValueError: bad shapes, empty mask, non-unit or NaN normals in the mask, most normals facing
-            away from the camera (flipped convention), bad camera or options.
+            away from the camera (flipped convention), a camera not at the normal map's grid, bad options.
 
     Example:
         >>> n = np.zeros((8, 8, 3)); n[..., 0] = 0.6; n[..., 2] = -0.8
-        >>> z = integrate_normals(n, np.ones((8, 8), bool), pixel_size=0.01)
+        >>> z = integrate_normals(n, np.ones((8, 8), bool), camera=OrthographicCamera(8, 8, 0.01))
         >>> round(float(z[0, 1] - z[0, 0]), 6)   # dz/dx = −n_x/n_z = 0.75, times 0.01 m per pixel
         0.0075
     """
     t_start = time.perf_counter()
     nmap, m = check_normal_map(normals, mask, unit_tol=unit_tol)
-    kmat = _check_camera(projection, pixel_size, K)
+    model = _field_model(camera, m.shape)
     if method not in ("smooth", "bilateral"):
         raise ValueError(f"method must be 'smooth' or 'bilateral'; got {method!r}")
     if not (np.isfinite(reference_depth) and reference_depth > 0):
         raise ValueError(f"reference_depth must be a positive depth; got {reference_depth!r}")
-    if not (k > 0 and max_iter >= 1 and tol >= 0 and weight_tol >= 0 and 0 < weight_floor < 1):
-        raise ValueError(
-            "bilateral options out of range: need k > 0, max_iter >= 1, tol >= 0, weight_tol >= 0, "
-            f"0 < weight_floor < 1; got k={k}, max_iter={max_iter}, tol={tol}, weight_tol={weight_tol}, "
-            f"weight_floor={weight_floor}"
-        )
-    h, w = m.shape
+    options = _BilateralOptions(k, max_iter, tol, weight_tol, weight_floor)
 
-    g_u, g_v, clamped = surface_gradients(nmap, projection=projection, pixel_size=pixel_size, K=kmat, grazing_eps=grazing_eps)
-    n_clamped = int((clamped & m).sum())
-    if n_clamped:
-        if kmat is None:
-            facing_away = nmap[..., 2] > 0
-        else:
-            vv, uu = np.mgrid[0:h, 0:w].astype(np.float64)
-            ray = np.stack([uu, vv, np.ones_like(uu)], axis=-1) @ np.linalg.inv(kmat).T
-            facing_away = np.einsum("hwc,hwc->hw", nmap, ray) > 0
-        n_away = int((facing_away & m).sum())
-        if n_away > 0.5 * m.sum():
-            raise ValueError(
-                f"{n_away} of {int(m.sum())} normals face away from the camera (n·r > 0); polarshape's "
-                "camera frame has n_z < 0 for a surface facing an orthographic camera (spec §1): flip the "
-                "normals' sign or convert them from another convention"
-            )
-        logger.warning(
-            "%d normals are grazing or face away from the camera (%d facing away); their slope is capped",
-            n_clamped,
-            n_away,
-        )
-
-    if min_component_size > 1:
-        labels, n_lab = scipy.ndimage.label(m, structure=_FOUR_CONNECTED)
-        sizes = np.bincount(labels.ravel(), minlength=n_lab + 1)
-        small = (sizes < min_component_size) & (np.arange(n_lab + 1) > 0)
-        if small.any():
-            dropped = small[labels]
-            logger.info("leaving %d components (%d pixels) below %d pixels out", int(small.sum()), int(dropped.sum()), min_component_size)
-            m = m & ~dropped
-            if not m.any():
-                raise ValueError(f"every connected component of the mask is smaller than min_component_size={min_component_size}")
-
+    g_u, g_v = _checked_slopes(nmap, m, model, grazing_eps)
+    m = _drop_small_components(m, min_component_size)
     graph = _pixel_graph(m)
-    n_comp = graph.pinned.shape[0]
-    # Gradients of the solved field f: z/s per pixel (orthographic), log z per pixel (perspective).
-    field_scale = pixel_size if kmat is None else 1.0
-    g_nodes = np.stack([g_u[m], g_v[m]]) / field_scale  # (2, n)
-    g_tail = g_nodes[graph.axis, graph.tail]  # (E,)
-    g_head = g_nodes[graph.axis, graph.head]  # (E,)
-    axis_scale = np.array([1.0, 1.0]) if kmat is None else np.array([kmat[0, 0], kmat[1, 1]])
-
-    # Initial field from depth_init (NaN where unknown).
-    init_field = np.full(graph.n, np.nan)
-    if depth_init is not None:
-        init = _to_numpy(depth_init, "depth_init").astype(np.float64)
-        if init.shape != (h, w):
-            raise ValueError(f"depth_init must have shape (H, W) = {(h, w)}; got {init.shape}")
-        vals = init[m]
-        if kmat is None:
-            init_field = vals / field_scale
-        else:
-            with np.errstate(divide="ignore", invalid="ignore"):
-                init_field = np.where(vals > 0, np.log(vals), np.nan)
-    init_median = _component_median(init_field, graph.component, n_comp)  # (C,)
-    x0 = np.where(np.isfinite(init_field), init_field, np.nan_to_num(init_median)[graph.component])
-    x0 = x0 - x0[graph.pinned][graph.component]  # the pinned gauge: pinned node at 0
+    g_nodes = np.stack([g_u[m], g_v[m]]) / model.field_scale  # (2, n) gradients of the solved field f
+    targets = (g_nodes[graph.axis, graph.tail], g_nodes[graph.axis, graph.head])  # (E,) each
+    init_field, x0 = _initial_field(depth_init, m, graph, model)
 
     linear = _LinearSolver(solver, graph.n, rtol)
-    if method == "bilateral" and bool(np.all(np.isfinite(init_field))):
-        # A complete depth_init already shows its cliffs: start from its weights, not from ½.
-        w_tail, w_head = _bilateral_weights(graph, x0, axis_scale, k)
-    else:
-        w_tail = np.full(graph.tail.shape, 0.5)
-        w_head = np.full(graph.tail.shape, 0.5)
-
-    field = x0
-    energy_prev = np.inf
-    energy_unit = float(graph.tail.shape[0]) * (1.0 + float(np.mean(g_tail**2)) if g_tail.size else 1.0)
-    n_iter = max_iter if method == "bilateral" else 1
-    for it in range(n_iter):
-        coeff = np.maximum(w_tail + w_head, weight_floor)
-        lap, rhs = _system(graph, coeff, w_tail * g_tail + w_head * g_head)
-        field = linear(lap, rhs, field)
-        diff = graph.incidence @ field  # (E,)
-        energy = float(np.sum(w_tail * (diff - g_tail) ** 2 + w_head * (diff - g_head) ** 2))
-        if method == "smooth":
-            break
-        w_tail_new, w_head_new = _bilateral_weights(graph, field, axis_scale, k)
-        weight_change = float(max(np.abs(w_tail_new - w_tail).max(initial=0.0), np.abs(w_head_new - w_head).max(initial=0.0)))
-        w_tail, w_head = w_tail_new, w_head_new
-        change = abs(energy_prev - energy) / max(energy_prev, 1e-300) if np.isfinite(energy_prev) else np.inf
-        logger.debug(
-            "bilateral iteration %d: energy %.6g, relative change %.3g, largest weight change %.3g",
-            it + 1,
-            energy,
-            change,
-            weight_change,
+    if method == "bilateral":
+        complete = bool(np.all(np.isfinite(init_field)))
+        field, energy, iterations = _bilateral_solve(
+            graph, linear, targets, x0, model.axis_scale, options, init_complete=complete
         )
-        exact_fit = energy <= 1e-20 * energy_unit  # integrable field solved to rounding error
-        if weight_change < weight_tol and (change < tol or exact_fit):
-            break
-        energy_prev = energy
-
-    # Gauge: one constant per component (module docstring).
-    if kmat is None:
-        depth_rel = field * field_scale  # (n,) z up to a constant
-        const = _component_median(init_field * field_scale - depth_rel, graph.component, n_comp)
-        fallback = reference_depth - _component_median(depth_rel, graph.component, n_comp)
-        const = np.where(np.isfinite(const), const, fallback)
-        depth_nodes = depth_rel + const[graph.component]
     else:
-        const = _component_median(init_field - field, graph.component, n_comp)
-        fallback = np.log(reference_depth) - _component_median(field, graph.component, n_comp)
-        const = np.where(np.isfinite(const), const, fallback)
-        depth_nodes = np.exp(field + const[graph.component])
+        half = np.full(graph.tail.shape, 0.5)  # plain least squares: w⁺ = w⁻ = ½
+        field, energy = _weighted_solve(graph, linear, (half, half), targets, x0, weight_floor)
+        iterations = 1
 
-    depth = np.full((h, w), np.nan)
-    depth[m] = depth_nodes
+    depth = np.full(m.shape, np.nan)
+    depth[m] = model.depth_of_field(field, init_field, graph, reference_depth)
+    seconds = time.perf_counter() - t_start
     if report is not None:
-        report.pixels, report.components, report.solver = graph.n, n_comp, linear.solver
-        report.iterations, report.cg_steps, report.energy = it + 1, linear.iterations, energy
-        report.seconds = time.perf_counter() - t_start
+        report.pixels, report.components, report.solver = graph.n, graph.pinned.shape[0], linear.solver
+        report.iterations, report.cg_steps, report.energy = iterations, linear.iterations, energy
+        report.seconds = seconds
     logger.info(
         "integrated %d pixels (%d components, %s, %s, solver %s): %d iterations, %d CG steps, %.3f s",
         graph.n,
-        n_comp,
-        projection,
+        graph.pinned.shape[0],
+        camera.projection,
         method,
         linear.solver,
-        it + 1,
+        iterations,
         linear.iterations,
-        time.perf_counter() - t_start,
+        seconds,
     )
     return depth

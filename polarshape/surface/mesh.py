@@ -1,9 +1,11 @@
 """Meshes from depth maps and oriented point clouds, and their atomic export (PLY, OBJ).
 
 Camera frame (spec §1): x right, y down, z forward; pixel (u, v) = (column, row), pixel centres at
-integer coordinates. A depth map gives one camera-frame point per valid pixel:
-- orthographic: P = ((u − (W−1)/2)·s, (v − (H−1)/2)·s, z), s = ``pixel_size`` (optical axis through
-  the image centre);
+integer coordinates. A depth map gives one camera-frame point per valid pixel, the camera's
+:meth:`~polarshape.cameras.OrthographicCamera.unproject` (a :mod:`polarshape.cameras` camera at the
+depth map's grid):
+- orthographic: P = ((u − c_x)·s, (v − c_y)·s, z), s = ``pixel_size_m``, (c_x, c_y) the principal
+  point (default the grid centre ((W−1)/2, (H−1)/2));
 - perspective: P = z·K⁻¹(u, v, 1)ᵀ.
 Faces are wound so that their normals face the camera (n·V > 0, V from the surface to the camera),
 which is the orientation of polarshape's normals.
@@ -14,61 +16,18 @@ from __future__ import annotations
 import logging
 import os
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
+import torch
 import trimesh
 from numpy.typing import NDArray
 
+from polarshape.cameras import Camera
+from polarshape.checks import to_numpy
 from polarshape.io.atomic import atomic_write_bytes
 
 logger = logging.getLogger(__name__)
-
-Projection = Literal["orthographic", "perspective"]
-
-
-def _as_array(array: Any, name: str) -> NDArray[Any]:
-    if hasattr(array, "detach") and hasattr(array, "cpu"):
-        array = array.detach().cpu().numpy()
-    return np.asarray(array)
-
-
-def depth_to_points(
-    depth: Any,
-    *,
-    projection: Projection = "orthographic",
-    pixel_size: float = 1.0,
-    K: Any | None = None,
-) -> NDArray[np.float64]:
-    """Camera-frame 3-D point of every pixel of a depth map (module docstring for the model).
-
-    Args:
-        depth: (H, W) camera-frame z (metres), NaN where unknown.
-        projection: "orthographic" or "perspective".
-        pixel_size: metres per pixel (orthographic).
-        K: (3, 3) intrinsics at the depth map's resolution (perspective).
-
-    Returns:
-        (H, W, 3) float64 points, NaN where depth is NaN.
-    """
-    z = _as_array(depth, "depth").astype(np.float64)
-    if z.ndim != 2:
-        raise ValueError(f"depth must have shape (H, W); got {z.shape}")
-    h, w = z.shape
-    vv, uu = np.mgrid[0:h, 0:w].astype(np.float64)
-    if projection == "orthographic":
-        if not (np.isfinite(pixel_size) and pixel_size > 0):
-            raise ValueError(f"pixel_size must be a positive number of metres per pixel; got {pixel_size!r}")
-        return np.stack([(uu - (w - 1) / 2) * pixel_size, (vv - (h - 1) / 2) * pixel_size, z], axis=-1)
-    if projection == "perspective":
-        if K is None:
-            raise ValueError("projection='perspective' needs K, the (3, 3) intrinsic matrix at the depth map's resolution")
-        k = _as_array(K, "K").astype(np.float64)
-        if k.shape != (3, 3) or not np.allclose(k[2], [0.0, 0.0, 1.0]) or k[0, 0] <= 0 or k[1, 1] <= 0:
-            raise ValueError(f"K must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0; got {k.tolist()}")
-        rays = np.stack([uu, vv, np.ones_like(uu)], axis=-1) @ np.linalg.inv(k).T  # (H, W, 3), r_z = 1
-        return z[..., None] * rays
-    raise ValueError(f"projection must be 'orthographic' or 'perspective'; got {projection!r}")
 
 
 def _grid_normals(points: NDArray[np.float64], valid: NDArray[np.bool_], view: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -109,7 +68,7 @@ def _grid_normals(points: NDArray[np.float64], valid: NDArray[np.bool_], view: N
 
 def _vertex_colors(colors: Any, valid: NDArray[np.bool_]) -> NDArray[np.uint8]:
     """(H, W), (H, W, 3) or (H, W, 4) colours (float in [0, 1] or uint8) → (V, 4) RGBA uint8."""
-    c = _as_array(colors, "colors")
+    c = to_numpy(colors)
     if c.shape[:2] != valid.shape or c.ndim not in (2, 3) or (c.ndim == 3 and c.shape[2] not in (3, 4)):
         raise ValueError(f"colors must have shape (H, W), (H, W, 3) or (H, W, 4) with (H, W) = {valid.shape}; got {c.shape}")
     if c.ndim == 2:
@@ -126,9 +85,7 @@ def depth_to_mesh(
     depth: Any,
     mask: Any | None = None,
     *,
-    projection: Projection = "orthographic",
-    pixel_size: float = 1.0,
-    K: Any | None = None,
+    camera: Camera,
     normals: Any | None = None,
     colors: Any | None = None,
 ) -> trimesh.Trimesh:
@@ -136,8 +93,10 @@ def depth_to_mesh(
 
     Args:
         depth: (H, W) camera-frame z (metres), NaN where unknown.
-        mask: optional (H, W) bool; valid pixels = mask ∧ finite depth (∧ depth > 0 in perspective).
-        projection, pixel_size, K: the camera (see :func:`depth_to_points`).
+        mask: optional (H, W) bool; valid pixels = mask ∧ finite depth ∧ in front of the camera
+            (depth > 0 in perspective).
+        camera: a :mod:`polarshape.cameras` camera at the depth map's grid (for a capture:
+            ``camera.superpixel("centre", ...)``).
         normals: optional (H, W, 3) camera-frame unit normals for the vertex normals; where absent (or
             NaN) they are computed from the point grid.
         colors: optional (H, W), (H, W, 3) or (H, W, 4) vertex colours, float in [0, 1] (e.g. an albedo
@@ -147,13 +106,13 @@ def depth_to_mesh(
         trimesh.Trimesh (not processed: vertex i is the i-th valid pixel in raster order), faces wound
         so that their normals face the camera, vertex normals set, vertex colours if given.
     """
-    points = depth_to_points(depth, projection=projection, pixel_size=pixel_size, K=K)  # (H, W, 3)
+    points = camera.unproject(depth)  # (H, W, 3)
+    view = to_numpy(camera.view_directions(torch.from_numpy(points)))  # (H, W, 3) unit, surface → camera
     z = points[..., 2]
-    valid = np.isfinite(z)
-    if projection == "perspective":
-        valid &= z > 0
+    # Seen by the camera: the way back to it points towards −z (always, orthographic; z > 0, perspective).
+    valid = np.isfinite(z) & (view[..., 2] < 0)
     if mask is not None:
-        m = _as_array(mask, "mask")
+        m = to_numpy(mask)
         if m.shape != z.shape:
             raise ValueError(f"mask must have shape (H, W) = {z.shape} to match depth; got {m.shape}")
         valid &= m.astype(bool)
@@ -171,13 +130,9 @@ def depth_to_mesh(
     a, b, c, d = a[full], b[full], c[full], d[full]
     faces = np.concatenate([np.stack([a, c, b], axis=1), np.stack([b, c, d], axis=1)])  # (F, 3)
 
-    if projection == "orthographic":
-        view = np.broadcast_to(np.array([0.0, 0.0, -1.0]), points.shape)
-    else:
-        view = -points / np.linalg.norm(points, axis=-1, keepdims=True)
     computed = _grid_normals(points, valid, view)  # (H, W, 3)
     if normals is not None:
-        n = _as_array(normals, "normals").astype(np.float64)
+        n = to_numpy(normals).astype(np.float64)
         if n.shape != points.shape:
             raise ValueError(f"normals must have shape (H, W, 3) = {points.shape}; got {n.shape}")
         norm = np.linalg.norm(n, axis=-1, keepdims=True)
@@ -223,8 +178,8 @@ def poisson_mesh(
     """
     import open3d as o3d
 
-    p = _as_array(points, "points").astype(np.float64)
-    n = _as_array(normals, "normals").astype(np.float64)
+    p = to_numpy(points).astype(np.float64)
+    n = to_numpy(normals).astype(np.float64)
     if p.ndim != 2 or p.shape[1] != 3 or n.shape != p.shape:
         raise ValueError(f"points and normals must both have shape (N, 3); got {p.shape} and {n.shape}")
     keep = np.all(np.isfinite(p), axis=1) & np.all(np.isfinite(n), axis=1)

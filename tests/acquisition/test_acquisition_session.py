@@ -15,17 +15,12 @@ import yaml
 from polarshape.acquisition.aravis import AravisCamera
 from polarshape.acquisition.camera import Frame
 from polarshape.acquisition.fake_gige import REFERENCE_EXPOSURE_US, FakeGigECamera
-from polarshape.acquisition.lights import LightSpec, SimulatedLightRig
-from polarshape.acquisition.session import (
-    CAPTURE_FORMAT,
-    average_frames,
-    capture_session,
-    load_session_config,
-    run_capture_session,
-)
+from polarshape.acquisition.lights import RigLight, SimulatedLightRig
+from polarshape.acquisition.session import average_frames, capture_session, load_session_config, run_capture_session
 from polarshape.io.atomic import OutputExistsError
+from polarshape.io.capture import CAPTURE_FORMAT
 
-SPECS = [LightSpec(direction=(np.sin(t), 0.1, -np.cos(t)), intensity=1.0) for t in np.linspace(0.1, 0.8, 5)]
+SPECS = [RigLight(direction=(np.sin(t), 0.1, -np.cos(t)), intensity=1.0) for t in np.linspace(0.1, 0.8, 5)]
 
 
 @dataclass
@@ -198,9 +193,35 @@ def test_session_file_errors_name_the_field(tmp_path: Path) -> None:
         load_session_config(bad)
 
 
+@pytest.mark.parametrize(
+    "camera,lights,fragment",
+    [
+        ({"intrinsics": {"fx": -1, "fy": 1, "cx": 0, "cy": 0}}, [{"direction": [0, 0, -1]}], r"intrinsics\.fx"),
+        ({"intrinsics": {"fx": 1, "fy": 1, "cx": 0}}, [{"direction": [0, 0, -1]}], r"intrinsics\.cy"),
+        ({"distortion": [0.1, 0.0]}, [{"direction": [0, 0, -1]}], "4, 5, 8, 12 or 14 OpenCV coefficients"),
+        ({}, [{"direction": [0, 0, 1]}], r"lights\.0\.direction\s+Value error, z = 1 must be < 0"),
+        ({}, [{"direction": [0, 0, -1], "position": [0, 0, -1]}], "exactly one of direction"),
+    ],
+)
+def test_session_camera_and_lights_use_the_capture_schema(tmp_path: Path, camera, lights, fragment) -> None:
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(yaml.safe_dump({"camera": {"backend": "aravis", "address": "10.0.0.2", **camera},
+                                   "rig": {"type": "manual"}, "lights": lights}))
+    with pytest.raises(ValueError, match=fragment):
+        load_session_config(bad)
+
+
+def test_session_lights_need_not_be_unit_vectors(tmp_path: Path) -> None:
+    good = tmp_path / "good.yaml"
+    good.write_text(yaml.safe_dump({"camera": {"backend": "aravis", "address": "10.0.0.2"}, "rig": {"type": "manual"},
+                                    "lights": [{"direction": [0.3, -0.2, -0.93], "name": "top"}]}))
+    light = load_session_config(good).lights[0].to_rig_light()
+    assert light.name == "top" and light.direction == pytest.approx(np.array([0.3, -0.2, -0.93]) / np.sqrt(0.9949))
+
+
 def test_run_refuses_bad_lights_and_missing_intrinsics_before_capturing(tmp_path: Path) -> None:
     cam = _StubCamera()
-    behind = SimulatedLightRig(cam, [LightSpec(direction=(0, 0, 1))])
+    behind = SimulatedLightRig(cam, [RigLight(direction=(0, 0, 1))])
     with pytest.raises(ValueError, match="light 0: direction .* z >= 0"):
         run_capture_session(cam, behind, tmp_path / "a")
     with pytest.raises(ValueError, match="needs intrinsics"):

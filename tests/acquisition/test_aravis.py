@@ -15,13 +15,14 @@ import numpy as np
 import pytest
 
 from polarshape.acquisition.aravis import AravisCamera, FrameCounter
-from polarshape.acquisition.camera import PIXEL_FORMATS, Camera, CameraError
+from polarshape.acquisition.camera import Camera, CameraError
 from polarshape.acquisition.fake_gige import (
     REFERENCE_EXPOSURE_US,
     FakeGigECamera,
     gvcp_read_register,
     synthetic_mosaic,
 )
+from polarshape.imaging.pixels import PIXEL_FORMATS
 
 FORMATS = list(PIXEL_FORMATS)
 _serials = itertools.count(1)

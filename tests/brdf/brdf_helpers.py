@@ -34,14 +34,6 @@ def random_geometry(rng: np.random.Generator, n: int, *, max_deg: float = 89.9, 
     return n_, l_, v
 
 
-def dolp(s: torch.Tensor) -> torch.Tensor:
-    return torch.hypot(s[..., 1], s[..., 2]) / s[..., 0]
-
-
-def aolp(s: torch.Tensor) -> torch.Tensor:
-    return 0.5 * torch.atan2(s[..., 2], s[..., 1])
-
-
 def angle_diff_mod_pi(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """|a − b| modulo π, in [0, π/2]."""
     d = torch.remainder(a - b, torch.pi)

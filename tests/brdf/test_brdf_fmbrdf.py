@@ -5,13 +5,15 @@ import math
 import numpy as np
 import pytest
 import torch
-from brdf_helpers import angle_diff_mod_pi, aolp, around, dolp, random_geometry
+from brdf_helpers import angle_diff_mod_pi, around, random_geometry
 
 from polarshape.brdf import build_tables, fmbrdf_stokes
 from polarshape.brdf.distribution import d_normalisation, d_shape
 from polarshape.brdf.fresnel import fresnel
 from polarshape.brdf.quadrature import theta_rule
 from polarshape.brdf.smith import projected_area_exact
+from polarshape.errors import ShapeError
+from polarshape.imaging.stokes import aolp, dolp
 
 F64 = torch.float64
 Z = torch.tensor([0.0, 0.0, 1.0], dtype=F64)
@@ -71,9 +73,9 @@ def test_invalid_parameters_are_named(kwargs, match):
 
 def test_invalid_vectors_are_named():
     n = torch.tensor([0.0, 0.0, -1.0])
-    with pytest.raises(ValueError, match="normal must have shape"):
+    with pytest.raises(ShapeError, match=r"normal must have shape \(\*, 3\); got \(4, 2\)"):
         fmbrdf_stokes(torch.zeros(4, 2), n, n, ior=1.5, k_s=1, k_b=1, alpha=0.3, beta=2, kappa=0)
-    with pytest.raises(ValueError, match="do not broadcast"):
+    with pytest.raises(ShapeError, match="do not broadcast"):
         fmbrdf_stokes(torch.zeros(4, 3), torch.zeros(5, 3), n, ior=1.5, k_s=1, k_b=1, alpha=0.3, beta=2, kappa=0)
 
 
@@ -172,7 +174,7 @@ def test_small_alpha_gives_flat_body_term(kappa):
             s = fmbrdf_stokes(Z, dirs(tl, dp), dirs(tv, 0), ior=1.6, k_s=0.0, k_b=1.0, alpha=alpha, beta=2.0, kappa=kappa)
             errs.append(abs(float(s[0]) / ref_s0 - 1.0))
         assert errs[1] < errs[0] and errs[1] < 2e-3, errs
-        assert float(dolp(s)) == pytest.approx(ref_dolp, abs=2e-3)
+        assert float(dolp(s, dim=-1, eps=0.0)) == pytest.approx(ref_dolp, abs=2e-3)
 
 
 @pytest.mark.parametrize("alpha,beta", [(0.3, 2.0), (1.0, 0.7)])
@@ -181,7 +183,7 @@ def test_zero_body_dolp_at_normal_view_for_kappa_zero(alpha, beta):
     n = torch.tensor([0.0, 0.0, -1.0], dtype=F64)
     for l in (dirs(150, 0), dirs(120, 40), dirs(100, 250)):  # lights in front of n = −z
         s = body(n, l, n, t)
-        assert float(dolp(s)) < 1e-6
+        assert float(dolp(s, dim=-1, eps=0.0)) < 1e-6
 
 
 def test_specular_aolp_perpendicular_and_body_aolp_parallel_to_plane_of_incidence():
@@ -195,9 +197,9 @@ def test_specular_aolp_perpendicular_and_body_aolp_parallel_to_plane_of_incidenc
     l_mirror = 2 * (n @ v)[:, None] * n - v  # specular direction: H = N
     t = build_tables(ior=1.5, alpha=0.2, beta=2.0, kappa=0.0)
     spec = fmbrdf_stokes(n, l_mirror, v, ior=1.5, k_s=1.0, k_b=0.0, alpha=0.2, beta=2.0, kappa=0.0, tables=t)
-    assert float(angle_diff_mod_pi(aolp(spec), azimuth + math.pi / 2).max()) < 1e-6
+    assert float(angle_diff_mod_pi(aolp(spec, dim=-1), azimuth + math.pi / 2).max()) < 1e-6
     bod = fmbrdf_stokes(n, v.expand(50, 3), v, ior=1.5, k_s=0.0, k_b=1.0, alpha=0.2, beta=2.0, kappa=0.0, tables=t)
-    assert float(angle_diff_mod_pi(aolp(bod), azimuth).max()) < 1e-3
+    assert float(angle_diff_mod_pi(aolp(bod, dim=-1), azimuth).max()) < 1e-3
 
 
 @pytest.mark.parametrize("alpha,beta,kappa", [(0.05, 2.0, 0.0), (0.4, 2.0, 30.0), (1.5, 1.0, 100.0), (0.3, 0.5, 0.0)])

@@ -12,6 +12,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
+from polarshape.errors import ShapeError
 from polarshape.imaging.demosaic import DEMOSAIC_METHODS, intensities_from_mosaic, stokes_from_mosaic
 from polarshape.imaging.mosaic import MosaicLayout, channel_angles_rad, mosaic_from_stokes
 from polarshape.imaging.stokes import aolp, dolp, intensities_from_stokes
@@ -166,7 +167,7 @@ def test_invalid_inputs() -> None:
         stokes_from_mosaic(torch.zeros(4, 4), method="bicubic")  # type: ignore[arg-type]
     with pytest.raises(TypeError, match="counts_to_float"):
         stokes_from_mosaic(torch.zeros(4, 4, dtype=torch.int32))
-    with pytest.raises(ValueError, match="even"):
+    with pytest.raises(ShapeError, match="even"):
         stokes_from_mosaic(torch.zeros(4, 5), method="bilinear")
     with pytest.raises(ValueError, match="tau_rel"):
         stokes_from_mosaic(torch.zeros(4, 4), method="edge_aware", tau_rel=0.0)

@@ -8,6 +8,7 @@ import math
 import pytest
 import torch
 
+from polarshape.errors import ShapeError
 from polarshape.imaging.mosaic import (
     MosaicLayout,
     channel_angles_rad,
@@ -99,9 +100,11 @@ def test_mosaic_from_stokes_is_malus_per_site() -> None:
 
 
 def test_split_rejects_odd_sizes_and_bad_layout() -> None:
-    with pytest.raises(ValueError, match="even"):
+    with pytest.raises(ShapeError, match=r"mosaic must have shape \(\*, 2H, 2W\) with even.*; got \(5, 4\)"):
         split_mosaic(torch.zeros(5, 4), MosaicLayout.imx250mzr())
+    with pytest.raises(ShapeError, match=r"non-zero.*; got \(0, 4\)"):
+        split_mosaic(torch.zeros(0, 4), MosaicLayout.imx250mzr())
     with pytest.raises(TypeError, match="MosaicLayout"):
         split_mosaic(torch.zeros(4, 4), ((90, 135), (45, 0)))  # type: ignore[arg-type]
-    with pytest.raises(ValueError, match=r"\(\*, 4, H, W\)"):
+    with pytest.raises(ShapeError, match=r"intensities must have shape \(\*, 4, H, W\)"):
         mosaic_from_intensities(torch.zeros(3, 2, 2), MosaicLayout.imx250mzr())

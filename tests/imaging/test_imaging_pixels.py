@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 
+from polarshape.errors import ShapeError
 from polarshape.imaging.pixels import (
     check_bit_depth,
     counts_to_float,
@@ -91,7 +92,7 @@ def test_superpixel_reduction_any_and_all() -> None:
     )
     t = reduce_mask_to_superpixels(torch.from_numpy(mask)[None], "any")
     assert t.shape == (1, 2, 3) and bool(t[0, 0, 0])
-    with pytest.raises(ValueError, match="even"):
+    with pytest.raises(ShapeError, match=r"mask must have shape \(\*, 2H, 2W\) with even sizes; got \(3, 4\)"):
         reduce_mask_to_superpixels(np.zeros((3, 4), bool))
 
 

@@ -7,6 +7,7 @@ import math
 import pytest
 import torch
 
+from polarshape.errors import ShapeError
 from polarshape.imaging.stokes import aolp, dolp, intensities_from_stokes, polariser_matrix, stokes_from_intensities
 
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
@@ -54,7 +55,7 @@ def test_malus_values() -> None:
 def test_degenerate_angles_rejected() -> None:
     with pytest.raises(ValueError, match="distinct modulo 180"):
         stokes_from_intensities(torch.rand(3, 2, 2), torch.tensor([0.0, math.pi, 0.5]))
-    with pytest.raises(ValueError, match="shape of"):
+    with pytest.raises(ShapeError, match=r"angles_rad must have shape \(4,\) to match intensities"):
         stokes_from_intensities(torch.rand(4, 2, 2), torch.tensor([0.0, 1.0, 2.0]))
     with pytest.raises(TypeError, match="floating-point"):
         stokes_from_intensities(torch.ones(4, 2, 2, dtype=torch.int32), QUAD)
@@ -106,8 +107,22 @@ def test_polariser_matrix_rows() -> None:
     torch.testing.assert_close(a, torch.tensor([[0.5, 0.5, 0.0], [0.5, 0.0, 0.5]], dtype=torch.float64))
 
 
+def test_dolp_aolp_take_the_stokes_axis() -> None:
+    s = _random_stokes((2, 4, 5), torch.float64, "cpu")  # (K, 3, H, W)
+    last = s.movedim(1, -1)  # (K, H, W, 3)
+    torch.testing.assert_close(dolp(last, dim=-1), dolp(s), rtol=0, atol=0)
+    torch.testing.assert_close(aolp(last, dim=3), aolp(s), rtol=0, atol=0)
+    torch.testing.assert_close(dolp(s, dim=1, eps=0.5), dolp(s, eps=0.5), rtol=0, atol=0)
+    v = torch.tensor([2.0, 0.0, -1.0], dtype=torch.float64)
+    assert float(dolp(v, dim=0)) == pytest.approx(0.5) and float(aolp(v, dim=-1)) == pytest.approx(-math.pi / 4)
+    with pytest.raises(ShapeError, match=r"\(\*, 3\) \(\(s0, s1, s2\) along dim -1\); got \(4, 2\)"):
+        dolp(torch.rand(4, 2), dim=-1)
+    with pytest.raises(ShapeError, match="no dim 1"):
+        aolp(torch.rand(3), dim=1)
+
+
 def test_shape_errors_name_the_expected_shape() -> None:
-    with pytest.raises(ValueError, match=r"\(\*, 3, H, W\)"):
+    with pytest.raises(ShapeError, match=r"\(\*, 3, H, W\)"):
         dolp(torch.rand(4, 2, 2))
     with pytest.raises(TypeError, match="torch.Tensor"):
         aolp([[1.0]])  # type: ignore[arg-type]

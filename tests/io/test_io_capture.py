@@ -10,11 +10,13 @@ from typing import Any
 import cv2
 import numpy as np
 import pytest
+import torch
 import yaml
 
 from polarshape.imaging.mosaic import MosaicLayout
 from polarshape.io.atomic import OutputExistsError
 from polarshape.io.capture import Capture, CaptureError, CaptureSpec, load_capture, write_capture
+from polarshape.lights import DirectionalLight, PointLight
 
 SHARED = Path(__file__).resolve().parents[2] / ".." / "shared"
 
@@ -107,21 +109,23 @@ def test_round_trip_perspective_point_lights_tiff(tmp_path: Path) -> None:
     loaded = load_capture(write_capture(tmp_path / "cap", original) / "capture.yaml")
     _assert_same(original, loaded)
     assert loaded.layout == MosaicLayout(((0.0, 45.0), (135.0, 90.0)))
-    with pytest.raises(CaptureError, match="point lights"):
-        loaded.light_directions()
-    d = loaded.light_directions(np.array([[0.1, -0.2, 0.5], [0.0, 0.0, 1.0]]))
-    assert d.shape == (2, 2, 3)
+    lights = loaded.lights()
+    assert isinstance(lights[0], PointLight) and isinstance(lights[1], DirectionalLight)
+    d, e = lights.illuminate(torch.tensor([[0.1, -0.2, 0.5], [0.0, 0.0, 1.0]], dtype=torch.float64))
+    assert d.shape == (2, 2, 3) and e.shape == (2, 2)
     np.testing.assert_allclose(d[0, 0], [0.0, 0.0, -1.0])
     np.testing.assert_allclose(d[1, 1], [0.6, 0.0, -0.8])
     np.testing.assert_allclose(np.linalg.norm(d, axis=-1), 1.0)
+    np.testing.assert_allclose(e[0, 0], 2.0)  # intensity 2 at 1 m
+    np.testing.assert_allclose(e[1], 1.0)
 
 
 def test_helpers(folder: Path) -> None:
     c = load_capture(folder)
     assert c.layout == MosaicLayout.imx250mzr()
     assert c.num_lights == 3 and c.bit_depth == 12
-    np.testing.assert_allclose(c.light_directions()[1], [0.6, 0.0, -0.8])
-    np.testing.assert_allclose(c.light_intensities(), [1.0, 2.0, 3.0])
+    np.testing.assert_allclose(c.lights()[1].direction, [0.6, 0.0, -0.8])
+    np.testing.assert_allclose(c.lights().intensities(), [1.0, 2.0, 3.0])
 
 
 def test_write_never_overwrites_silently(tmp_path: Path, folder: Path) -> None:
@@ -332,7 +336,7 @@ def test_shared_captures(tmp_path: Path, name: str, k: int, hw: tuple[int, int],
     assert normals.shape == (hw[0] // 2, hw[1] // 2, 3)
     inside = np.isfinite(normals).all(-1) & (np.linalg.norm(np.nan_to_num(normals), axis=-1) > 0.5)
     assert (normals[inside][:, 2] < 0).all()  # facing the camera: N_z < 0
-    d = c.light_directions()
+    d, _ = c.lights().illuminate(torch.zeros(3, dtype=torch.float64))  # (K, 3): directional lights
     np.testing.assert_allclose(np.linalg.norm(d, axis=1), 1.0, atol=1e-6)
     assert (d[:, 2] < 0).all()
     # Copying the whole folder through write_capture keeps every bit.

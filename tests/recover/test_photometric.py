@@ -391,3 +391,20 @@ def test_plain_ps_is_differentiable() -> None:
         return lambertian_ps(i, lights)
 
     assert torch.autograd.gradcheck(outputs, (intensity,))
+
+
+def test_directional_lights_with_per_pixel_intensity() -> None:
+    """Shared directions (K, 3) with per-pixel irradiance (K, P): each pixel's E scales its own
+    observations (this combination used to fail in the light-geometry check)."""
+    gen = torch.Generator().manual_seed(0)
+    k, p = 6, 42
+    t = torch.linspace(0.3, 0.8, k, dtype=torch.float64)
+    phi = torch.arange(k, dtype=torch.float64) * 2.1
+    lights = torch.stack([t.sin() * phi.cos(), t.sin() * phi.sin(), -t.cos()], -1)
+    normal = torch.nn.functional.normalize(torch.tensor([0.1, -0.2, -1.0], dtype=torch.float64), dim=0)
+    e = 0.5 + torch.rand(k, p, generator=gen, dtype=torch.float64)
+    intensity = 0.7 * e * (lights @ normal).clamp_min(0).unsqueeze(1)
+    robust = robust_lambertian_ps(intensity, lights, e)
+    for normals, albedo in (lambertian_ps(intensity, lights, e), (robust.normals, robust.albedo)):
+        torch.testing.assert_close(normals, normal.expand(p, 3))
+        torch.testing.assert_close(albedo, torch.full((p,), 0.7, dtype=torch.float64))

@@ -11,7 +11,8 @@ import torch
 from polarshape.imaging.mosaic import mosaic_from_stokes
 from polarshape.imaging.pixels import float_to_counts
 from polarshape.io.capture import Capture, parse_capture_spec
-from polarshape.recover.preprocess import crop_inputs, preprocess_capture, superpixel_view_directions
+from polarshape.recover.observations import crop_inputs
+from polarshape.recover.preprocess import capture_camera, preprocess_capture
 
 
 def _capture(stokes: torch.Tensor, *, projection: str = "orthographic", mask: np.ndarray | None = None,
@@ -48,8 +49,8 @@ def test_orthographic_stokes_round_trip_and_shapes() -> None:
     torch.testing.assert_close(inp.stokes.double(), stokes, atol=2e-3, rtol=0)
     assert inp.valid.all() and inp.mask.all()
     assert inp.has_polarisation
-    assert inp.lights.shape == (4, 3)
-    torch.testing.assert_close(inp.lights.norm(dim=-1), torch.ones(4))
+    assert inp.lights.shape == (4, 6, 8, 3) and inp.irradiance.shape == (4, 6, 8)  # per pixel, every light type
+    torch.testing.assert_close(inp.lights.norm(dim=-1), torch.ones(4, 6, 8))
     torch.testing.assert_close(inp.view, torch.tensor([0.0, 0.0, -1.0]).expand(6, 8, 3))
 
 
@@ -111,11 +112,11 @@ def test_no_polariser_detected() -> None:
 
 
 def test_perspective_views_and_stokes_back_in_pixel_frames() -> None:
-    from polarshape.render import sensor_plane_stokes
+    from polarshape.brdf.geometry import sensor_plane_stokes
 
     stokes = _stokes(h=8, w=8)
     probe = _capture(stokes, projection="perspective")
-    view = superpixel_view_directions(probe, 8, 8)
+    view = capture_camera(probe).pixel_view_directions()
     # the sensor reports sensor-plane angles: build the capture from those, expect per-pixel back
     sensor = sensor_plane_stokes(stokes, view)
     assert float((sensor - stokes).abs().max()) > 1e-3  # off-axis pixels differ
@@ -130,8 +131,8 @@ def test_perspective_views_follow_the_sample_site_and_the_distortion() -> None:
 
     probe = _capture(_stokes(h=8, w=8), projection="perspective")  # fx = fy = 50, (cx, cy) = (7.5, 7.5)
     k = probe.spec.camera.intrinsics
-    centre = superpixel_view_directions(probe, 8, 8)
-    corner = superpixel_view_directions(probe, 8, 8, sample_at="top_left")
+    centre = capture_camera(probe).pixel_view_directions()
+    corner = capture_camera(probe, "top_left").pixel_view_directions()
     # pinhole: V ∝ −((u − cx)/fx, (v − cy)/fy, 1) at u = 2x + 0.5 (centre) or 2x (top-left site)
     expect = torch.tensor([-(2 * 3 + 0.5 - k.cx) / k.fx, -(2 * 5 + 0.5 - k.cy) / k.fy, -1.0], dtype=torch.float64)
     torch.testing.assert_close(centre[5, 3], expect / expect.norm())
@@ -140,12 +141,12 @@ def test_perspective_views_follow_the_sample_site_and_the_distortion() -> None:
     # barrel distortion (k1 < 0) pulls image points inwards: the undistorted ray lies further out
     camera = probe.spec.camera.model_copy(update={"distortion": (-0.2, 0.0, 0.0, 0.0, 0.0)})
     distorted = dataclasses.replace(probe, spec=probe.spec.model_copy(update={"camera": camera}))
-    view = superpixel_view_directions(distorted, 8, 8)
+    view = capture_camera(distorted).pixel_view_directions()
     off_axis = lambda d: torch.atan2(d[..., :2].norm(dim=-1), -d[..., 2])  # noqa: E731
     assert bool((off_axis(view[0, 0]) > off_axis(centre[0, 0]) + 1e-3))
     torch.testing.assert_close(view.norm(dim=-1), torch.ones(8, 8, dtype=torch.float64))
     with pytest.raises(ValueError, match="sample_at must be one of"):
-        superpixel_view_directions(probe, 8, 8, sample_at="middle")
+        capture_camera(probe, "middle").pixel_view_directions()
 
 
 def test_point_lights_need_points() -> None:

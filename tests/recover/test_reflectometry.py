@@ -8,9 +8,9 @@ import pytest
 import torch
 
 from polarshape.brdf import build_tables, fmbrdf_stokes
+from polarshape.brdf.params import FMBRDFParams
+from polarshape.recover.observations import Observations
 from polarshape.recover.reflectometry import (
-    GlobalParams,
-    Observations,
     eq25_loss,
     eq25_weights,
     fit_reflectance,
@@ -42,7 +42,8 @@ def _observe(normals: Tensor, lights: Tensor, view: Tensor, truth: dict, k_b: Te
     if noise:
         gen = torch.Generator().manual_seed(seed)
         s = s + noise * torch.randn(s.shape, generator=gen, dtype=s.dtype)
-    return Observations(s, torch.ones(s.shape[:2], dtype=s.dtype), lights, torch.ones(lights.shape[0], dtype=s.dtype), view)
+    p, k = s.shape[:2]
+    return Observations(s, torch.ones(p, k, dtype=s.dtype), lights.expand(p, k, 3), torch.ones(p, k, dtype=s.dtype), view)
 
 
 def test_render_parts_sum_to_fmbrdf() -> None:
@@ -106,7 +107,7 @@ def test_fit_recovers_parameters_with_known_normals(alpha: float) -> None:
     assert abs(fit.params.k_s - 1.0) <= 0.1
     lit = obs.stokes[..., 0].amax(1) > 0.05
     assert float((fit.k_b[lit] - k_b[lit]).abs().median()) < 0.02
-    assert fit.loss <= objective(GlobalParams(ior=1.5, alpha=0.5, beta=2.0), n, obs, delta=3e-3)
+    assert fit.loss <= objective(FMBRDFParams(ior=1.5, alpha=0.5, beta=2.0), n, obs, delta=3e-3)
 
 
 def test_fit_global_albedo_and_eq25_objective() -> None:
@@ -124,7 +125,7 @@ def test_fit_global_albedo_and_eq25_objective() -> None:
 def test_fit_kappa_only_parameters_requested_move() -> None:
     n, l, v = _scene(200, 8)
     obs = _observe(n, l, v, dict(ior=1.5, k_s=1.0, alpha=0.3, beta=2.0, kappa=0.0), torch.full((200,), 0.5, dtype=n.dtype))
-    fit = fit_reflectance(n, obs, init=GlobalParams(ior=1.4, alpha=0.35, beta=2.5), grid_search=False, fit_names=("alpha",))
+    fit = fit_reflectance(n, obs, init=FMBRDFParams(ior=1.4, alpha=0.35, beta=2.5), grid_search=False, fit_names=("alpha",))
     assert fit.params.ior == 1.4 and fit.params.beta == 2.5
     assert fit.params.alpha != 0.35
     assert all(math.isfinite(v) for v in fit.params.as_dict().values())
@@ -134,7 +135,7 @@ def test_fit_kappa_only_parameters_requested_move() -> None:
 def test_fit_from_parameter_bounds_stays_finite(start: dict) -> None:
     n, l, v = _scene(150, 8)
     obs = _observe(n, l, v, dict(ior=1.5, k_s=1.0, alpha=0.3, beta=2.0, kappa=0.0), torch.full((150,), 0.5, dtype=n.dtype))
-    fit = fit_reflectance(n, obs, init=GlobalParams(**start), grid_search=False, fit_kappa="kappa" in start, max_iter=3)
+    fit = fit_reflectance(n, obs, init=FMBRDFParams(**start), grid_search=False, fit_kappa="kappa" in start, max_iter=3)
     assert all(math.isfinite(x) for x in fit.params.as_dict().values())
     assert math.isfinite(fit.loss) and bool(torch.isfinite(fit.k_b).all())
 
@@ -157,12 +158,12 @@ def test_fit_from_a_single_polarimetric_image(alpha: float) -> None:
 
 
 def test_reported_body_albedo_is_robust_to_a_few_absurd_pixels() -> None:
-    """GlobalParams.k_b from a per-pixel fit is the median: 2 % of pixels with a 100× albedo (what a
+    """FMBRDFParams.k_b from a per-pixel fit is the median: 2 % of pixels with a 100× albedo (what a
     block straddling a texture edge can get) leave it at the bulk's value; the mean would not."""
     n, l, v = _scene(400, 10)
     k_b = torch.full((400,), 0.5, dtype=n.dtype)
     k_b[::50] = 50.0
     obs = _observe(n, l, v, dict(ior=1.5, k_s=1.0, alpha=0.3, beta=2.0, kappa=0.0), k_b)
-    fit = fit_reflectance(n, obs, init=GlobalParams(ior=1.5, alpha=0.3, beta=2.0), grid_search=False, max_iter=2)
+    fit = fit_reflectance(n, obs, init=FMBRDFParams(ior=1.5, alpha=0.3, beta=2.0), grid_search=False, max_iter=2)
     assert float(fit.k_b.mean()) > 1.0  # the per-pixel albedos do hold the outliers
     assert fit.params.k_b == pytest.approx(0.5, rel=0.02)

@@ -8,10 +8,11 @@ from pathlib import Path
 import pytest
 import trimesh
 
-from polarshape.scene.cameras import OrthographicCamera, PerspectiveCamera
+from polarshape.cameras import OrthographicCamera, PerspectiveCamera
+from polarshape.io.capture import LightSpec
+from polarshape.lights import DirectionalLight, PointLight
 from polarshape.scene.config import load_scene_config, parse_scene_config
 from polarshape.scene.geometry import BlobShape, MeshShape, PlaneShape, SphereShape, TorusShape
-from polarshape.scene.lights import DirectionalLight, PointLight
 from polarshape.scene.materials import BaekMaterial, FMBRDFMaterial, LambertianMaterial
 
 SCENES = Path(__file__).resolve().parents[2] / "configs" / "scenes"
@@ -59,6 +60,13 @@ def test_angles_give_directions_in_the_camera_frame():
     light = config.lights[0].to_light()
     assert light.direction == pytest.approx((0.0, 0.5, -math.sqrt(3) / 2))  # +y = image down
     assert light.intensity == 2.0
+
+
+def test_lights_are_capture_light_entries_of_any_length():
+    config = parse_scene_config(_with(lights=[{"direction": [0, 0, -2], "intensity": 0.5}, {"position": [0, 0.1, 0]}]))
+    assert all(isinstance(light, LightSpec) for light in config.lights)
+    assert [light.to_light() for light in config.lights] == [DirectionalLight((0.0, 0.0, -1.0), 0.5),
+                                                             PointLight((0.0, 0.1, 0.0), 1.0)]
 
 
 def test_every_shape_and_material_kind(tmp_path):

@@ -29,8 +29,8 @@ def test_fmbrdf_material_scales_k_b_and_caches_its_tables():
     mat = FMBRDFMaterial(ior=1.5, k_s=0.7, k_b=0.4, alpha=0.3, beta=2.0, kappa=5.0)
     assert isinstance(mat, Material)
     got = mat.stokes(n, l, v, scale)
-    tables = mat._tables["cpu"]
-    assert mat.stokes(n, l, v, scale) is not got and mat._tables["cpu"] is tables  # built once
+    tables = mat.tables_on("cpu")
+    assert mat.stokes(n, l, v, scale) is not got and mat.tables_on("cpu") is tables  # built once
     expect = fmbrdf_stokes(n, l, v, ior=1.5, k_s=0.7, k_b=0.4 * scale, alpha=0.3, beta=2.0, kappa=5.0, tables=tables)
     assert torch.allclose(got, expect, rtol=1e-12, atol=1e-15)
     # a larger albedo scale raises s0 where the body term is present

@@ -5,9 +5,9 @@ from __future__ import annotations
 import pytest
 import torch
 
-from polarshape.scene.cameras import OrthographicCamera
+from polarshape.cameras import OrthographicCamera
+from polarshape.lights import DirectionalLight
 from polarshape.scene.geometry import PlaneShape, SphereShape
-from polarshape.scene.lights import DirectionalLight
 from polarshape.scene.materials import LambertianMaterial
 from polarshape.scene.objects import Scene, SceneObject
 

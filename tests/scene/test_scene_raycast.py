@@ -7,9 +7,9 @@ import math
 import pytest
 import torch
 
-from polarshape.scene.cameras import OrthographicCamera, PerspectiveCamera
+from polarshape.cameras import OrthographicCamera, PerspectiveCamera
+from polarshape.lights import DirectionalLight, PointLight
 from polarshape.scene.geometry import BlobShape, PlaneShape, SphereShape, TorusShape
-from polarshape.scene.lights import DirectionalLight, PointLight
 from polarshape.scene.raycast import cast_shadow_mask, rasterize, superpixel_ground_truth
 
 F64 = torch.float64

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
+from polarshape.cameras import OrthographicCamera, PerspectiveCamera
 from polarshape.surface.integrate import IntegrationReport, integrate_normals, surface_gradients
 
 Arr = NDArray[np.float64]
@@ -32,6 +33,17 @@ def _intrinsics(size: int = SIZE, f: float = 150.0) -> Arr:
 def _rays(K: Arr, size: int = SIZE) -> Arr:
     uu, vv = _grid(size)
     return np.stack([uu, vv, np.ones_like(uu)], axis=-1) @ np.linalg.inv(K).T  # (H, W, 3), r_z = 1
+
+
+def _ortho(normals, pixel: float = 1.0) -> OrthographicCamera:
+    """The orthographic camera at the grid of a normal map (H, W, 3), ``pixel`` metres per pixel."""
+    h, w = normals.shape[:2]
+    return OrthographicCamera(w, h, pixel, even=False)
+
+
+def _persp(K: Arr, size: int = SIZE) -> PerspectiveCamera:
+    """The pinhole camera of intrinsics K (3, 3) on a size × size grid."""
+    return PerspectiveCamera(size, size, K[0, 0], K[1, 1], K[0, 2], K[1, 2], even=False)
 
 
 def _circle(size: int = SIZE, radius: float = 0.42, centre: tuple[float, float] = (0.5, 0.5)) -> NDArray[np.bool_]:
@@ -127,7 +139,7 @@ def _rmse_scale(depth: Arr, true: Arr, mask: NDArray[np.bool_]) -> float:
 def test_orthographic_gradient_signs_plane() -> None:
     # z = 0.4 x − 0.25 y (y down): facing normal ∝ (0.4, −0.25, −1), p = −n_x/n_z, q = −n_y/n_z.
     n, mask, _ = ortho_plane(np.ones((4, 4), bool))
-    g_u, g_v, clamped = surface_gradients(n, pixel_size=0.01)
+    g_u, g_v, clamped = surface_gradients(n, camera=_ortho(n, 0.01))
     np.testing.assert_allclose(g_u, 0.4 * 0.01, rtol=1e-12)
     np.testing.assert_allclose(g_v, -0.25 * 0.01, rtol=1e-12)
     assert not clamped.any()
@@ -136,7 +148,7 @@ def test_orthographic_gradient_signs_plane() -> None:
 def test_orthographic_sphere_depth_grows_away_from_centre() -> None:
     # The front of a sphere recedes (z grows) to the right and downwards of its centre.
     n, mask, z = ortho_sphere(_circle(), (63.5, 63.5), 0.45)
-    g_u, g_v, _ = surface_gradients(n, pixel_size=PIXEL)
+    g_u, g_v, _ = surface_gradients(n, camera=_ortho(n, PIXEL))
     right, below = (64, 100), (100, 64)
     assert g_u[right] > 0 and z[64, 101] > z[64, 100]
     assert g_v[below] > 0 and z[101, 64] > z[100, 64]
@@ -145,7 +157,7 @@ def test_orthographic_sphere_depth_grows_away_from_centre() -> None:
 def test_perspective_gradients_match_finite_differences_of_log_depth() -> None:
     K = _intrinsics()
     n, mask, z = persp_plane(np.ones((SIZE, SIZE), bool), K)
-    g_u, g_v, clamped = surface_gradients(n, projection="perspective", K=K)
+    g_u, g_v, clamped = surface_gradients(n, camera=_persp(K))
     assert not clamped.any()
     logz = np.log(z)
     # A plane has ∂²log z ≠ 0, so compare with central differences at second order.
@@ -171,7 +183,7 @@ PERSP_CASES = {
 @pytest.mark.parametrize("case", sorted(ORTHO_CASES))
 def test_orthographic_recovery(case: str, method: str) -> None:
     n, mask, z = ORTHO_CASES[case]()
-    depth = integrate_normals(n, mask, pixel_size=PIXEL, method=method)
+    depth = integrate_normals(n, mask, camera=_ortho(n, PIXEL), method=method)
     assert np.all(np.isnan(depth[~mask])) and np.all(np.isfinite(depth[mask]))
     err = _rmse_offset(depth, z, mask)
     assert err < 0.01, f"{case}/{method}: RMSE {err:.4f} of the depth range"
@@ -185,7 +197,7 @@ def test_perspective_recovery(case: str, method: str) -> None:
     K = _intrinsics()
     n, mask, z = PERSP_CASES[case](K)
     assert mask.sum() > 4000
-    depth = integrate_normals(n, mask, projection="perspective", K=K, method=method, reference_depth=2.0)
+    depth = integrate_normals(n, mask, camera=_persp(K, n.shape[0]), method=method, reference_depth=2.0)
     assert np.all(np.isnan(depth[~mask])) and np.all(depth[mask] > 0)
     err = _rmse_scale(depth, z, mask)
     assert err < 0.01, f"{case}/{method}: RMSE {err:.4f} of the depth range"
@@ -195,7 +207,7 @@ def test_perspective_recovery(case: str, method: str) -> None:
 def test_smooth_orthographic_is_accurate_well_below_tolerance() -> None:
     # The discretisation is second order: a sphere cap integrates to ~1e-4 of its depth range.
     n, mask, z = ORTHO_CASES["sphere_cap"]()
-    assert _rmse_offset(integrate_normals(n, mask, pixel_size=PIXEL), z, mask) < 1e-3
+    assert _rmse_offset(integrate_normals(n, mask, camera=_ortho(n, PIXEL)), z, mask) < 1e-3
 
 
 def test_circular_mask_ignores_garbage_outside() -> None:
@@ -203,8 +215,8 @@ def test_circular_mask_ignores_garbage_outside() -> None:
     garbage = n.copy()
     garbage[~mask] = np.nan
     garbage[~mask & (np.arange(SIZE)[None, :] % 2 == 0)] = (0.0, 0.0, 5.0)  # not unit, facing away
-    d1 = integrate_normals(n, mask, pixel_size=PIXEL)
-    d2 = integrate_normals(garbage, mask, pixel_size=PIXEL)
+    d1 = integrate_normals(n, mask, camera=_ortho(n, PIXEL))
+    d2 = integrate_normals(garbage, mask, camera=_ortho(garbage, PIXEL))
     np.testing.assert_allclose(d1[mask], d2[mask], atol=1e-12)
 
 
@@ -223,7 +235,7 @@ def _two_spheres() -> tuple[Arr, NDArray[np.bool_], Arr, NDArray[np.bool_], NDAr
 
 def test_two_components_each_get_their_own_constant() -> None:
     n, mask, z, left, right = _two_spheres()
-    depth = integrate_normals(n, mask, pixel_size=PIXEL, reference_depth=2.5)
+    depth = integrate_normals(n, mask, camera=_ortho(n, PIXEL), reference_depth=2.5)
     for part in (left, right):
         assert _rmse_offset(depth, z, part) < 0.01
         assert np.median(depth[part]) == pytest.approx(2.5, abs=1e-9)
@@ -233,10 +245,10 @@ def test_two_components_each_get_their_own_constant() -> None:
 
 def test_depth_init_fixes_each_component_and_warm_starts() -> None:
     n, mask, z, left, right = _two_spheres()
-    depth = integrate_normals(n, mask, pixel_size=PIXEL, depth_init=z, solver="cg")
+    depth = integrate_normals(n, mask, camera=_ortho(n, PIXEL), depth_init=z, solver="cg")
     scale = np.ptp(z[mask])
     assert np.sqrt(np.nanmean((depth - z) ** 2)) < 0.01 * scale  # no alignment needed
-    cold = integrate_normals(n, mask, pixel_size=PIXEL, solver="direct")
+    cold = integrate_normals(n, mask, camera=_ortho(n, PIXEL), solver="direct")
     np.testing.assert_allclose(depth[left] - np.median(depth[left]), cold[left] - np.median(cold[left]), atol=1e-6)
 
 
@@ -245,7 +257,7 @@ def test_depth_init_sets_perspective_scale() -> None:
     n, mask, z = persp_sphere(np.ones((SIZE, SIZE), bool), K)
     init = np.full_like(z, np.nan)
     init[::7, ::5] = z[::7, ::5]  # sparse prior: only the scale is taken from it
-    depth = integrate_normals(n, mask, projection="perspective", K=K, depth_init=init)
+    depth = integrate_normals(n, mask, camera=_persp(K, n.shape[0]), depth_init=init)
     assert np.sqrt(np.mean((depth[mask] - z[mask]) ** 2)) < 0.01 * np.ptp(z[mask])
 
 
@@ -256,10 +268,10 @@ def test_tiny_components() -> None:
     mask[5, 10:12] = True  # two-pixel component
     n = np.where(mask[..., None] & ~np.isfinite(n), np.array([0.0, 0.0, -1.0]), n)
     n[2, 2] = n[5, 10] = n[5, 11] = _unit(np.array([0.1, 0.0, -1.0]))
-    depth = integrate_normals(n, mask, pixel_size=PIXEL, reference_depth=3.0)
+    depth = integrate_normals(n, mask, camera=_ortho(n, PIXEL), reference_depth=3.0)
     assert depth[2, 2] == pytest.approx(3.0)
     assert depth[5, 11] - depth[5, 10] == pytest.approx(0.1 * PIXEL, rel=1e-9)
-    dropped = integrate_normals(n, mask, pixel_size=PIXEL, min_component_size=3)
+    dropped = integrate_normals(n, mask, camera=_ortho(n, PIXEL), min_component_size=3)
     assert np.isnan(dropped[2, 2]) and np.isnan(dropped[5, 10]) and np.isfinite(dropped[64, 64])
 
 
@@ -268,9 +280,9 @@ def test_iterative_solvers_match_direct(solver: str) -> None:
     if solver == "amg":
         pytest.importorskip("pyamg")
     n, mask, z = ORTHO_CASES["smooth_bump"]()
-    ref = integrate_normals(n, mask, pixel_size=PIXEL, solver="direct")
+    ref = integrate_normals(n, mask, camera=_ortho(n, PIXEL), solver="direct")
     report = IntegrationReport()
-    got = integrate_normals(n, mask, pixel_size=PIXEL, solver=solver, report=report)
+    got = integrate_normals(n, mask, camera=_ortho(n, PIXEL), solver=solver, report=report)
     assert report.solver == solver and report.cg_steps > 0 and report.iterations == 1
     np.testing.assert_allclose(got[mask], ref[mask], atol=1e-6 * np.ptp(z[mask]))
 
@@ -280,7 +292,7 @@ def test_accepts_torch_tensors_of_either_precision(dtype: str) -> None:
     torch = pytest.importorskip("torch")
     n, mask, z = ORTHO_CASES["smooth_bump"]()
     tensor = torch.from_numpy(n).to(getattr(torch, dtype))
-    depth = integrate_normals(tensor, torch.from_numpy(mask), pixel_size=PIXEL)
+    depth = integrate_normals(tensor, torch.from_numpy(mask), camera=_ortho(tensor, PIXEL))
     assert depth.dtype == np.float64
     assert _rmse_offset(depth, z, mask) < (1e-3 if dtype == "float32" else 2e-4)
 
@@ -335,8 +347,8 @@ def persp_tear(size: int = 96, slope: float = 0.6, f: float = 120.0):
 def test_bilateral_preserves_orthographic_discontinuities(case: str, ratio: float) -> None:
     # Measured (96², defaults): tear smooth 0.199 / bilateral 0.0054; occlusion 0.129 / 0.036.
     n, mask, z = ortho_tear() if case == "tear" else ortho_occlusion()
-    smooth = _rmse_offset(integrate_normals(n, mask, method="smooth"), z, mask)
-    bilateral = _rmse_offset(integrate_normals(n, mask, method="bilateral"), z, mask)
+    smooth = _rmse_offset(integrate_normals(n, mask, camera=_ortho(n), method="smooth"), z, mask)
+    bilateral = _rmse_offset(integrate_normals(n, mask, camera=_ortho(n), method="bilateral"), z, mask)
     assert smooth > 0.1, f"{case}: smooth integration should smear the cliff (error {smooth:.4f})"
     assert bilateral < ratio * smooth, f"{case}: bilateral {bilateral:.4f} vs smooth {smooth:.4f}"
 
@@ -344,8 +356,8 @@ def test_bilateral_preserves_orthographic_discontinuities(case: str, ratio: floa
 def test_bilateral_warm_start_from_its_own_result_converges_at_once() -> None:
     n, mask, z = ortho_tear()
     first, again = IntegrationReport(), IntegrationReport()
-    depth = integrate_normals(n, mask, method="bilateral", report=first)
-    redo = integrate_normals(n, mask, method="bilateral", depth_init=depth, report=again)
+    depth = integrate_normals(n, mask, camera=_ortho(n), method="bilateral", report=first)
+    redo = integrate_normals(n, mask, camera=_ortho(n), method="bilateral", depth_init=depth, report=again)
     assert first.iterations > 5 and again.iterations < first.iterations / 3
     assert first.solver == "direct" and first.cg_steps == 0 and first.pixels == mask.size
     np.testing.assert_allclose(redo, depth, atol=0.01 * np.ptp(z))
@@ -353,8 +365,8 @@ def test_bilateral_warm_start_from_its_own_result_converges_at_once() -> None:
 
 def test_bilateral_preserves_perspective_discontinuity() -> None:
     n, mask, z, K = persp_tear()
-    smooth = _rmse_scale(integrate_normals(n, mask, projection="perspective", K=K), z, mask)
-    bilateral = _rmse_scale(integrate_normals(n, mask, projection="perspective", K=K, method="bilateral"), z, mask)
+    smooth = _rmse_scale(integrate_normals(n, mask, camera=_persp(K, n.shape[0])), z, mask)
+    bilateral = _rmse_scale(integrate_normals(n, mask, camera=_persp(K, n.shape[0]), method="bilateral"), z, mask)
     # Measured: smooth 0.177, bilateral 0.0049.
     assert smooth > 0.1
     assert bilateral < 0.1 * smooth, f"bilateral {bilateral:.4f} vs smooth {smooth:.4f}"
@@ -366,7 +378,7 @@ def test_normals_that_do_not_encode_a_step_cannot_recover_it() -> None:
     n = np.zeros((32, 32, 3))
     n[..., 2] = -1.0
     for method in ("smooth", "bilateral"):
-        depth = integrate_normals(n, None, method=method)
+        depth = integrate_normals(n, None, camera=_ortho(n), method=method)
         assert np.ptp(depth) < 1e-9
 
 
@@ -392,16 +404,15 @@ def _plane(size: int = 8) -> tuple[Arr, NDArray[np.bool_]]:
 def test_bad_inputs_raise_clear_errors(mutate, message: str) -> None:
     n, mask = mutate(*_plane())
     with pytest.raises(ValueError, match=message):
-        integrate_normals(n, mask)
+        integrate_normals(n, mask, camera=_ortho(n))
 
 
 @pytest.mark.parametrize(
     ("kwargs", "message"),
     [
-        ({"projection": "perspective"}, "needs K"),
-        ({"projection": "perspective", "K": np.eye(2)}, r"\(3, 3\)"),
-        ({"projection": "fisheye"}, "projection must be"),
-        ({"pixel_size": 0.0}, "pixel_size"),
+        ({"camera": OrthographicCamera(4, 4, even=False)}, "the camera's grid"),
+        ({"camera": PerspectiveCamera(8, 6, 10.0, 10.0, 4.0, 3.0)}, "the camera's grid"),
+        ({"camera": np.eye(3)}, "camera must be"),
         ({"method": "poisson"}, "method must be"),
         ({"solver": "magic"}, "solver must be"),
         ({"reference_depth": -1.0}, "reference_depth"),
@@ -412,14 +423,14 @@ def test_bad_inputs_raise_clear_errors(mutate, message: str) -> None:
 def test_bad_options_raise_clear_errors(kwargs: dict, message: str) -> None:
     n, mask = _plane()
     with pytest.raises(ValueError, match=message):
-        integrate_normals(n, mask, **kwargs)
+        integrate_normals(n, mask, **{"camera": _ortho(n), **kwargs})
 
 
 def test_grazing_normals_are_capped_with_a_warning(caplog: pytest.LogCaptureFixture) -> None:
     n, mask = _plane()
     n[0, 0] = (1.0, 0.0, 0.0)  # grazing: infinite slope
     with caplog.at_level(logging.WARNING, logger="polarshape.surface.integrate"):
-        depth = integrate_normals(n, mask)
+        depth = integrate_normals(n, mask, camera=_ortho(n))
     assert np.all(np.isfinite(depth))
     assert "grazing" in caplog.text
 
@@ -434,9 +445,9 @@ def test_a_few_near_grazing_outliers_do_not_wreck_the_depth() -> None:
     bad = n.copy()
     for r, c in ((40, 50), (41, 50), (80, 70), (64, 90)):
         bad[r, c] = _unit(np.array([1.0, 0.3, -0.002]))
-    clean = _rmse_offset(integrate_normals(n, mask, pixel_size=PIXEL), z, mask)
-    capped = _rmse_offset(integrate_normals(bad, mask, pixel_size=PIXEL), z, mask)
-    loose = _rmse_offset(integrate_normals(bad, mask, pixel_size=PIXEL, grazing_eps=1e-3), z, mask)
+    clean = _rmse_offset(integrate_normals(n, mask, camera=_ortho(n, PIXEL)), z, mask)
+    capped = _rmse_offset(integrate_normals(bad, mask, camera=_ortho(bad, PIXEL)), z, mask)
+    loose = _rmse_offset(integrate_normals(bad, mask, camera=_ortho(bad, PIXEL), grazing_eps=1e-3), z, mask)
     assert GRAZING_EPS == 0.05
     # measured: 0.014 %, 1.1 % and 28 % of the depth range
     assert capped < 0.02 and loose > 10 * capped, (clean, capped, loose)

@@ -9,10 +9,12 @@ import pytest
 import trimesh
 from scipy.spatial import cKDTree
 
+from polarshape.cameras import OrthographicCamera, PerspectiveCamera
 from polarshape.io.atomic import OutputExistsError
-from polarshape.surface.mesh import depth_to_mesh, depth_to_points, poisson_mesh, write_mesh
+from polarshape.surface.mesh import depth_to_mesh, poisson_mesh, write_mesh
 
 SIZE = 48
+ORTHO = OrthographicCamera(SIZE, SIZE, 0.02, even=False)  # 0.02 m per pixel, principal point at the centre
 
 
 def _sphere_depth(size: int = SIZE, pixel: float = 0.02, radius: float = 0.4, centre_z: float = 2.0):
@@ -46,21 +48,21 @@ def _face_view_dots(mesh: trimesh.Trimesh, orthographic: bool) -> np.ndarray:
 
 def test_one_vertex_per_valid_pixel_and_faces_face_the_camera() -> None:
     z, mask, n = _sphere_depth()
-    mesh = depth_to_mesh(z, mask, pixel_size=0.02, normals=n)
+    mesh = depth_to_mesh(z, mask, camera=ORTHO, normals=n)
     valid = mask & np.isfinite(z)
     assert len(mesh.vertices) == int(valid.sum())
     full_blocks = valid[:-1, :-1] & valid[:-1, 1:] & valid[1:, :-1] & valid[1:, 1:]
     assert len(mesh.faces) == 2 * int(full_blocks.sum())
     assert np.all(_face_view_dots(mesh, orthographic=True) > 0)
     # vertex i is the i-th valid pixel in raster order, at the camera-frame point of that pixel
-    points = depth_to_points(z, pixel_size=0.02)
-    np.testing.assert_allclose(mesh.vertices, points[valid])
+    np.testing.assert_allclose(mesh.vertices, ORTHO.unproject(z)[valid])
     np.testing.assert_allclose(mesh.vertex_normals, n[valid], atol=1e-12)
 
 
 def test_perspective_mesh_faces_the_camera_and_lies_on_the_rays() -> None:
     z, K, n0 = _perspective_plane()
-    mesh = depth_to_mesh(z, projection="perspective", K=K)
+    camera = PerspectiveCamera(SIZE, SIZE, K[0, 0], K[1, 1], K[0, 2], K[1, 2], even=False)
+    mesh = depth_to_mesh(z, camera=camera)
     assert len(mesh.vertices) == SIZE * SIZE and len(mesh.faces) == 2 * (SIZE - 1) ** 2
     assert np.all(_face_view_dots(mesh, orthographic=False) > 0)
     # reprojection of the vertices gives the pixel grid back
@@ -72,9 +74,22 @@ def test_perspective_mesh_faces_the_camera_and_lies_on_the_rays() -> None:
     np.testing.assert_allclose(mesh.vertex_normals, np.broadcast_to(n0, mesh.vertex_normals.shape), atol=1e-9)
 
 
+def test_vertices_are_the_documented_camera_frame_points() -> None:
+    # orthographic: ((u − (W−1)/2)·s, (v − (H−1)/2)·s, z); perspective: z·K⁻¹(u, v, 1)
+    z, mask, _ = _sphere_depth()
+    vv, uu = np.mgrid[0:SIZE, 0:SIZE].astype(np.float64)
+    expected = np.stack([(uu - (SIZE - 1) / 2) * 0.02, (vv - (SIZE - 1) / 2) * 0.02, z], axis=-1)
+    np.testing.assert_array_equal(ORTHO.unproject(z), expected)
+    zp, K, _ = _perspective_plane()
+    camera = PerspectiveCamera(SIZE, SIZE, K[0, 0], K[1, 1], K[0, 2], K[1, 2], even=False)
+    rays = np.stack([uu, vv, np.ones_like(uu)], axis=-1) @ np.linalg.inv(K).T
+    np.testing.assert_array_equal(camera.unproject(zp), zp[..., None] * rays)
+    np.testing.assert_array_equal(depth_to_mesh(zp, camera=camera).vertices, (zp[..., None] * rays).reshape(-1, 3))
+
+
 def test_computed_normals_face_the_camera_and_isolated_vertices_get_the_view_direction() -> None:
     z, mask, n = _sphere_depth()
-    mesh = depth_to_mesh(z, mask, pixel_size=0.02)
+    mesh = depth_to_mesh(z, mask, camera=ORTHO)
     valid = mask & np.isfinite(z)
     computed = mesh.vertex_normals
     assert np.all(computed[:, 2] < 0)
@@ -88,22 +103,25 @@ def test_vertex_colors_from_an_albedo_map() -> None:
     albedo = np.zeros((SIZE, SIZE, 3))
     albedo[..., 0] = 1.0
     albedo[..., 2] = 0.5
-    mesh = depth_to_mesh(z, mask, pixel_size=0.02, colors=albedo)
+    mesh = depth_to_mesh(z, mask, camera=ORTHO, colors=albedo)
     np.testing.assert_array_equal(mesh.visual.vertex_colors[:, :3], np.broadcast_to([255, 0, 128], (len(mesh.vertices), 3)))
 
 
 def test_depth_to_mesh_rejects_bad_input() -> None:
     z, mask, n = _sphere_depth()
     with pytest.raises(ValueError, match="mask must have shape"):
-        depth_to_mesh(z, mask[:-1])
+        depth_to_mesh(z, mask[:-1], camera=ORTHO)
     with pytest.raises(ValueError, match="no valid pixel"):
-        depth_to_mesh(np.full((4, 4), np.nan))
-    with pytest.raises(ValueError, match="needs K"):
-        depth_to_mesh(z, projection="perspective")
+        depth_to_mesh(np.full((4, 4), np.nan), camera=OrthographicCamera(4, 4))
+    with pytest.raises(ValueError, match="camera's grid"):
+        depth_to_mesh(z, camera=OrthographicCamera(4, 4))
     with pytest.raises(ValueError, match="normals must have shape"):
-        depth_to_mesh(z, mask, normals=n[..., :2])
+        depth_to_mesh(z, mask, camera=ORTHO, normals=n[..., :2])
     with pytest.raises(ValueError, match="colors must have shape"):
-        depth_to_mesh(z, mask, colors=np.zeros((3, 3)))
+        depth_to_mesh(z, mask, camera=ORTHO, colors=np.zeros((3, 3)))
+    behind = np.full((SIZE, SIZE), -1.0)  # a perspective camera sees nothing at z < 0
+    with pytest.raises(ValueError, match="no valid pixel"):
+        depth_to_mesh(behind, camera=PerspectiveCamera(SIZE, SIZE, 60.0, 60.0, 23.5, 23.5))
 
 
 def _sphere_cloud(count: int = 3000, radius: float = 0.3, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -143,7 +161,7 @@ def test_write_mesh_round_trip_with_normals(tmp_path: Path, suffix: str) -> None
     z, mask, n = _sphere_depth()
     mask[0, 0] = False  # OBJ readers drop unreferenced vertices: keep only meshed pixels
     albedo = np.full((SIZE, SIZE, 3), 0.25)
-    mesh = depth_to_mesh(z, mask, pixel_size=0.02, normals=n, colors=albedo)
+    mesh = depth_to_mesh(z, mask, camera=ORTHO, normals=n, colors=albedo)
     path = write_mesh(mesh, tmp_path / f"mesh{suffix}")
     back = trimesh.load(path, process=False)
     assert len(back.faces) == len(mesh.faces)
@@ -159,14 +177,14 @@ def test_write_mesh_round_trip_with_normals(tmp_path: Path, suffix: str) -> None
 
 def test_write_mesh_refuses_to_overwrite(tmp_path: Path) -> None:
     z, mask, n = _sphere_depth()
-    mesh = depth_to_mesh(z, mask, pixel_size=0.02)
+    mesh = depth_to_mesh(z, mask, camera=ORTHO)
     path = tmp_path / "mesh.ply"
     write_mesh(mesh, path)
     before = path.read_bytes()
     with pytest.raises(OutputExistsError):
         write_mesh(mesh, path)
     assert path.read_bytes() == before
-    write_mesh(depth_to_mesh(z * 2, mask, pixel_size=0.02), path, overwrite=True)
+    write_mesh(depth_to_mesh(z * 2, mask, camera=ORTHO), path, overwrite=True)
     assert path.read_bytes() != before
     with pytest.raises(ValueError, match=r"\.ply or \.obj"):
         write_mesh(mesh, tmp_path / "mesh.stl")

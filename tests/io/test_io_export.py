@@ -1,4 +1,4 @@
-"""Tests of polarshape.export: normal-map PNG conventions, EXR, NPY, parameter maps, no overwrite."""
+"""Tests of polarshape.io.export: normal-map PNG conventions, EXR, NPY, parameter maps, no overwrite."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from polarshape.export import (
+from polarshape.io.export import (
     read_exr,
     read_normal_map_png,
     write_exr,

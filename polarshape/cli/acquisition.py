@@ -3,32 +3,21 @@
 from __future__ import annotations
 
 import argparse
-import logging
-import sys
 
-logger = logging.getLogger(__name__)
+from polarshape.cli.errors import reports_errors
 
 
+@reports_errors()
 def _cmd_capture(args: argparse.Namespace) -> int:
-    from polarshape.acquisition.camera import CameraError
-    from polarshape.acquisition.lights import LightRigError
     from polarshape.acquisition.session import capture_session
-    from polarshape.io.atomic import OutputExistsError
 
-    try:
-        path = capture_session(args.session, args.out, resume=not args.no_resume)
-    except OutputExistsError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 1
-    except (CameraError, LightRigError, ValueError, OSError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+    path = capture_session(args.session, args.out, resume=not args.no_resume)
     print(f"wrote {path}")
     return 0
 
 
 def _intrinsics(args: argparse.Namespace):  # noqa: ANN202
-    from polarshape.calibrate import Intrinsics
+    from polarshape.acquisition.calibrate import Intrinsics
 
     vals = (args.fx, args.fy, args.cx, args.cy)
     if all(v is None for v in vals):
@@ -38,22 +27,18 @@ def _intrinsics(args: argparse.Namespace):  # noqa: ANN202
     return Intrinsics(fx=args.fx, fy=args.fy, cx=args.cx, cy=args.cy)
 
 
+@reports_errors()
 def _cmd_calibrate_lights(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from polarshape.calibrate import calibrate_lights_from_files
+    from polarshape.acquisition.calibrate import calibrate_lights_from_files
 
     if (args.mask is None) == (args.circle is None):
-        print("error: give exactly one of --mask MASK.png or --circle CU CV RADIUS (the mirror sphere)", file=sys.stderr)
-        return 2
-    try:
-        dirs = calibrate_lights_from_files(
-            args.images, mask_path=args.mask, circle=tuple(args.circle) if args.circle else None,
-            intrinsics=_intrinsics(args), mosaic=not args.no_mosaic, capture_yaml=args.capture,
-        )
-    except (ValueError, OSError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+        raise ValueError("give exactly one of --mask MASK.png or --circle CU CV RADIUS (the mirror sphere)")
+    dirs = calibrate_lights_from_files(
+        args.images, mask_path=args.mask, circle=tuple(args.circle) if args.circle else None,
+        intrinsics=_intrinsics(args), mosaic=not args.no_mosaic, capture_yaml=args.capture,
+    )
     for i, d in enumerate(np.asarray(dirs)):
         print(f"light {i}: direction [{d[0]: .5f}, {d[1]: .5f}, {d[2]: .5f}]")
     if args.capture:
@@ -61,17 +46,14 @@ def _cmd_calibrate_lights(args: argparse.Namespace) -> int:
     return 0
 
 
+@reports_errors()
 def _cmd_calibrate_intrinsics(args: argparse.Namespace) -> int:
-    from polarshape.calibrate import CharucoBoardSpec, calibrate_intrinsics_from_files
+    from polarshape.acquisition.calibrate import CharucoBoardSpec, calibrate_intrinsics_from_files
 
     board = CharucoBoardSpec(
         squares=tuple(args.squares), square_length_m=args.square_length, marker_length_m=args.marker_length, dictionary=args.dictionary
     )
-    try:
-        k = calibrate_intrinsics_from_files(args.images, board, mosaic=not args.no_mosaic, capture_yaml=args.capture)
-    except (ValueError, OSError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+    k = calibrate_intrinsics_from_files(args.images, board, mosaic=not args.no_mosaic, capture_yaml=args.capture)
     print(f"intrinsics (raw-mosaic pixels): fx={k.fx:.3f} fy={k.fy:.3f} cx={k.cx:.3f} cy={k.cy:.3f}")
     if args.capture:
         print(f"updated {args.capture}")

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import yaml
 
-from polarshape.calibrate import (
+from polarshape.acquisition.calibrate import (
     CharucoBoardSpec,
     Intrinsics,
     calibrate_intrinsics_charuco,
@@ -109,7 +109,7 @@ def test_orthographic_mirror_sphere_directions() -> None:
 
 def test_perspective_mirror_sphere_directions() -> None:
     lights = _lights()
-    k = Intrinsics(900.0, 905.0, 318.4, 241.2)
+    k = Intrinsics(fx=900.0, fy=905.0, cx=318.4, cy=241.2)
     center, radius = np.array([0.045, -0.02, 0.32]), 0.045
     images, mask = _render_persp(lights, k, 480, 640, center, radius)
     sphere = fit_sphere(mask, k)
@@ -233,7 +233,7 @@ def test_charuco_from_mosaic_files_in_raw_pixels(tmp_path: Path) -> None:
 
 
 def test_superpixel_conversion_and_errors() -> None:
-    k = Intrinsics(1000.0, 990.0, 611.5, 511.5)
+    k = Intrinsics(fx=1000.0, fy=990.0, cx=611.5, cy=511.5)
     back = k.raw_to_superpixel().superpixel_to_raw()
     assert (back.fx, back.fy, back.cx, back.cy) == pytest.approx((1000.0, 990.0, 611.5, 511.5))
     mosaic = np.arange(16, dtype=np.uint16).reshape(4, 4)

@@ -1,4 +1,4 @@
-"""Sensor model of the simulated camera: radiance → electrons → noisy, clipped, quantised counts.
+"""Sensor model of the simulator: radiance → electrons → noisy, clipped, quantised counts.
 
 Per pixel (spec fmbrdf.md §8):
 
@@ -26,17 +26,12 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from polarshape.acquisition.camera import PIXEL_FORMATS
+from polarshape.imaging.pixels import check_bit_depth, max_count
+from polarshape.checks import to_numpy
+
+__all__ = ["SensorModel", "ShotNoise"]
 
 ShotNoise = Literal["poisson", "gaussian", "none"]
-_BIT_DEPTHS = (8, 10, 12, 16)
-
-
-def bit_depth_of(pixel_format: str) -> int:
-    """Bit depth of a GenICam pixel format name (a key of ``PIXEL_FORMATS``)."""
-    if pixel_format not in PIXEL_FORMATS:
-        raise ValueError(f"pixel_format {pixel_format!r} is not supported; use one of {sorted(PIXEL_FORMATS)}")
-    return PIXEL_FORMATS[pixel_format][1]
 
 
 @dataclass(frozen=True)
@@ -79,7 +74,7 @@ class SensorModel:
 
     def e_per_count(self, bit_depth: int, gain_db: float = 0.0) -> float:
         """Electrons per count at ``bit_depth`` and analogue gain ``gain_db``."""
-        _check_bit_depth(bit_depth)
+        check_bit_depth(bit_depth)
         base = self.e_per_count_12bit
         if base is None:
             base = self.full_well_e / (4095.0 - self.black_level_12bit)
@@ -87,7 +82,7 @@ class SensorModel:
 
     def black_level(self, bit_depth: int) -> float:
         """Black level in counts of ``bit_depth``."""
-        _check_bit_depth(bit_depth)
+        check_bit_depth(bit_depth)
         return self.black_level_12bit * 2.0 ** (bit_depth - 12)
 
     def mean_electrons(self, radiance: Tensor, exposure_us: float) -> Tensor:
@@ -119,7 +114,7 @@ class SensorModel:
         Returns:
             Same shape, ``uint8`` for 8 bits else ``uint16``, low-bit aligned counts.
         """
-        _check_bit_depth(bit_depth)
+        check_bit_depth(bit_depth)
         if not math.isfinite(gain_db):
             raise ValueError(f"gain_db must be finite, got {gain_db}")
         if not radiance.is_floating_point():
@@ -134,14 +129,9 @@ class SensorModel:
         if self.read_noise_e > 0:
             electrons = electrons + self.read_noise_e * _normal_like(electrons, generator)
         counts = electrons / self.e_per_count(bit_depth, gain_db) + self.black_level(bit_depth)
-        counts = torch.round(counts).clamp(0, 2**bit_depth - 1)
-        return counts.to("cpu").numpy().astype(np.uint8 if bit_depth == 8 else np.uint16)
+        counts = torch.round(counts).clamp(0, max_count(bit_depth))
+        return to_numpy(counts, np.uint8 if bit_depth == 8 else np.uint16)
 
 
 def _normal_like(x: Tensor, generator: torch.Generator | None) -> Tensor:
     return torch.randn(x.shape, dtype=x.dtype, device=x.device, generator=generator)
-
-
-def _check_bit_depth(bit_depth: int) -> None:
-    if bit_depth not in _BIT_DEPTHS:
-        raise ValueError(f"bit_depth must be one of {_BIT_DEPTHS}, got {bit_depth}")

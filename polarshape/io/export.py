@@ -26,6 +26,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from polarshape.checks import to_numpy
 from polarshape.io.atomic import atomic_path, atomic_write_bytes
 
 logger = logging.getLogger(__name__)
@@ -38,12 +39,6 @@ _CONVENTION_SIGNS: dict[str, NDArray[np.float64]] = {
     "opengl": np.array([1.0, -1.0, -1.0]),
 }
 _EXR_ORDER_ATTRIBUTE = "polarshape_channel_order"
-
-
-def _as_array(array: Any) -> NDArray[Any]:
-    if hasattr(array, "detach") and hasattr(array, "cpu"):
-        array = array.detach().cpu().numpy()
-    return np.asarray(array)
 
 
 def _signs(convention: str) -> NDArray[np.float64]:
@@ -94,7 +89,7 @@ def write_normal_map_png(
         >>> write_normal_map_png(n, "normal_map.png", convention="opengl")  # doctest: +SKIP
         # pixel (32768, 32768, 65535)
     """
-    n = _as_array(normals).astype(np.float64)
+    n = to_numpy(normals).astype(np.float64)
     if n.ndim != 3 or n.shape[2] != 3:
         raise ValueError(f"normals must have shape (H, W, 3); got {n.shape}")
     signs = _signs(convention)
@@ -136,7 +131,7 @@ def write_npy(array: Any, path: str | os.PathLike[str], *, overwrite: bool = Fal
     path = Path(path)
     if path.suffix != ".npy":
         raise ValueError(f"{path}: NumPy arrays are written to files ending in .npy")
-    a = _as_array(array)
+    a = to_numpy(array)
     with atomic_path(path, overwrite=overwrite) as tmp:
         np.save(tmp, a, allow_pickle=False)
     return path
@@ -173,7 +168,7 @@ def write_exr(
     """
     import OpenEXR
 
-    a = _as_array(array).astype(np.float32)
+    a = to_numpy(array).astype(np.float32)
     if a.ndim == 2:
         a = a[..., None]
     if a.ndim != 3 or a.shape[0] == 0 or a.shape[1] == 0 or a.shape[2] == 0:
@@ -244,7 +239,7 @@ def write_scalar_map_png(
     Returns:
         The path written.
     """
-    v = _as_array(values).astype(np.float64)
+    v = to_numpy(values).astype(np.float64)
     if not (np.isfinite(vmin) and np.isfinite(vmax) and vmax > vmin):
         raise ValueError(f"need finite vmin < vmax; got vmin={vmin}, vmax={vmax}")
     if not (v.ndim == 2 or (v.ndim == 3 and v.shape[2] == 3 and colormap is None)):

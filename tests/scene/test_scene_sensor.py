@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from polarshape.acquisition.noise import SensorModel, bit_depth_of
+from polarshape.imaging.pixels import bit_depth_of
+from polarshape.scene.sensor import SensorModel
 
 SHAPE = (512, 512)
 

@@ -1,45 +1,32 @@
 """``polarshape run CONFIG.yaml [--out DIR] [--overwrite]``: the main command (see polarshape.pipeline).
 
-Registered on the main parser by :func:`add_parsers`. Exit status: 0 success, 1 refused to write over
-an existing folder or an input, 2 invalid configuration or input, 3 a stage failed.
+Registered on the main parser by :func:`add_parsers`. Exit status (see :mod:`polarshape.cli.errors`):
+0 success, 1 refused to write over an existing folder or an input, 2 invalid configuration or input,
+3 a stage failed (a PipelineError, or a builtin ValueError/OSError raised by a stage).
 """
 
 from __future__ import annotations
 
 import argparse
-import logging
-import sys
 from typing import Any
 
-logger = logging.getLogger(__name__)
+from polarshape.cli.errors import reports_errors
 
 
+@reports_errors(builtin_status=3)
 def _cmd_run(args: argparse.Namespace) -> int:
-    from polarshape.config import ConfigError, load_run_config
-    from polarshape.io.atomic import OutputExistsError
-    from polarshape.io.capture import CaptureError
-    from polarshape.pipeline import PipelineError, run_pipeline
+    from polarshape.config import load_run_config
+    from polarshape.pipeline import run_pipeline
 
-    try:
-        config = load_run_config(args.config)
-        updates: dict[str, Any] = {}
-        if args.device is not None:
-            updates["device"] = args.device
-        if args.quiet:
-            updates["progress"] = False
-        if updates:
-            config = config.model_copy(update=updates)
-        result = run_pipeline(config, args.out, overwrite=args.overwrite, config_path=args.config)
-    except OutputExistsError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 1
-    except (ConfigError, CaptureError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    except (PipelineError, ValueError) as exc:
-        logger.debug("run failed", exc_info=True)
-        print(f"error: {exc}", file=sys.stderr)
-        return 3
+    config = load_run_config(args.config)
+    updates: dict[str, Any] = {}
+    if args.device is not None:
+        updates["device"] = args.device
+    if args.quiet:
+        updates["progress"] = False
+    if updates:
+        config = config.model_copy(update=updates)
+    result = run_pipeline(config, args.out, overwrite=args.overwrite, config_path=args.config)
     print(result.summary)
     return 0
 

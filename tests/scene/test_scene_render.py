@@ -9,26 +9,25 @@ import numpy as np
 import pytest
 import torch
 
-from polarshape.brdf.geometry import stokes_frame
+from polarshape.brdf.geometry import sensor_plane_stokes, stokes_frame
+from polarshape.cameras import OrthographicCamera, PerspectiveCamera
 from polarshape.imaging.mosaic import MosaicLayout, mosaic_from_stokes, split_mosaic
 from polarshape.io.capture import load_capture
-from polarshape.render import (
+from polarshape.lights import DirectionalLight, PointLight
+from polarshape.scene.render import (
     albedo_scale_map,
     mosaic_radiance,
     polariser_angle_map,
     render_mosaics,
-    sensor_plane_stokes,
     shade_stokes,
 )
-from polarshape.scene.cameras import OrthographicCamera, PerspectiveCamera
 from polarshape.scene.geometry import PlaneShape, SphereShape
-from polarshape.scene.lights import DirectionalLight, PointLight
 from polarshape.scene.materials import BaekMaterial, FMBRDFMaterial, LambertianMaterial
 from polarshape.scene.objects import Scene, SceneObject
 from polarshape.scene.textures import AlbedoTexture
 
 F64 = torch.float64
-SHARED = Path(__file__).resolve().parents[1] / ".." / "shared"
+SHARED = Path(__file__).resolve().parents[2] / ".." / "shared"
 
 
 @pytest.fixture(scope="module")

@@ -36,7 +36,9 @@ import numpy as np
 import yaml
 from scipy import ndimage
 
+from polarshape.cameras import intrinsic_matrix, normalised_coordinates
 from polarshape.io.atomic import atomic_write_text
+from polarshape.io.capture import IntrinsicsSpec
 
 logger = logging.getLogger(__name__)
 
@@ -60,56 +62,47 @@ __all__ = [
 # -- data ------------------------------------------------------------------------------------------
 
 
-@dataclass(frozen=True)
-class Intrinsics:
-    """Pinhole intrinsics in pixels (pixel centres at integers) and OpenCV distortion.
+class Intrinsics(IntrinsicsSpec):
+    """Pinhole intrinsics as calibrated: the capture format's ``camera.intrinsics``
+    (:class:`~polarshape.io.capture.IntrinsicsSpec`: fx, fy, cx, cy in pixels, pixel centres at
+    integers) with the OpenCV distortion and the quality of the calibration.
 
     Attributes:
-        fx, fy: focal lengths, pixels.
-        cx, cy: principal point, pixels.
         distortion: (k1, k2, p1, p2, k3), or empty.
         rms_px: reprojection RMS of the calibration, pixels (NaN if not calibrated here).
         n_views: number of views used.
     """
 
-    fx: float
-    fy: float
-    cx: float
-    cy: float
     distortion: tuple[float, ...] = ()
     rms_px: float = float("nan")
     n_views: int = 0
 
-    def __post_init__(self) -> None:
-        if not (self.fx > 0 and self.fy > 0):
-            raise ValueError(f"intrinsics need fx, fy > 0; got fx={self.fx}, fy={self.fy}")
-
     @classmethod
     def from_mapping(cls, data: Mapping[str, Any], distortion: Sequence[float] = ()) -> Intrinsics:
         """From ``{fx, fy, cx, cy}`` (capture.yaml's ``camera.intrinsics``)."""
-        missing = [k for k in ("fx", "fy", "cx", "cy") if k not in data]
+        missing = [k for k in IntrinsicsSpec.model_fields if k not in data]
         if missing:
             raise ValueError(f"intrinsics are missing {missing}; give fx, fy, cx, cy in pixels")
-        return cls(float(data["fx"]), float(data["fy"]), float(data["cx"]), float(data["cy"]),
-                   tuple(float(d) for d in distortion))
+        return cls(fx=float(data["fx"]), fy=float(data["fy"]), cx=float(data["cx"]), cy=float(data["cy"]),
+                   distortion=tuple(float(d) for d in distortion))
 
     def matrix(self) -> np.ndarray:
         """(3, 3) camera matrix K."""
-        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+        return intrinsic_matrix(self.fx, self.fy, self.cx, self.cy)
 
     def to_capture_dict(self) -> dict[str, float]:
-        """``camera.intrinsics`` of capture.yaml."""
-        return {"fx": float(self.fx), "fy": float(self.fy), "cx": float(self.cx), "cy": float(self.cy)}
+        """``camera.intrinsics`` of capture.yaml (the :class:`~polarshape.io.capture.IntrinsicsSpec` fields)."""
+        return self.model_dump(include=set(IntrinsicsSpec.model_fields))
 
     def superpixel_to_raw(self) -> Intrinsics:
         """Intrinsics of super-pixel images (2x2 block means) expressed in raw-mosaic pixels."""
-        return Intrinsics(2 * self.fx, 2 * self.fy, 2 * self.cx + 0.5, 2 * self.cy + 0.5, self.distortion,
-                          2 * self.rms_px, self.n_views)
+        return Intrinsics(fx=2 * self.fx, fy=2 * self.fy, cx=2 * self.cx + 0.5, cy=2 * self.cy + 0.5,
+                          distortion=self.distortion, rms_px=2 * self.rms_px, n_views=self.n_views)
 
     def raw_to_superpixel(self) -> Intrinsics:
         """Inverse of :meth:`superpixel_to_raw`."""
-        return Intrinsics(self.fx / 2, self.fy / 2, (self.cx - 0.5) / 2, (self.cy - 0.5) / 2, self.distortion,
-                          self.rms_px / 2, self.n_views)
+        return Intrinsics(fx=self.fx / 2, fy=self.fy / 2, cx=(self.cx - 0.5) / 2, cy=(self.cy - 0.5) / 2,
+                          distortion=self.distortion, rms_px=self.rms_px / 2, n_views=self.n_views)
 
 
 @dataclass(frozen=True)
@@ -145,12 +138,8 @@ def _edge_points(mask: np.ndarray) -> np.ndarray:
 
 def _rays(uv: np.ndarray, intrinsics: Intrinsics) -> np.ndarray:
     """(P, 3) unit camera-frame rays through pixels ``uv`` (P, 2), undistorted."""
-    pts = uv.reshape(-1, 1, 2).astype(np.float64)
-    if intrinsics.distortion and any(intrinsics.distortion):
-        norm = cv2.undistortPoints(pts, intrinsics.matrix(), np.asarray(intrinsics.distortion)).reshape(-1, 2)
-    else:
-        norm = np.stack([(pts[:, 0, 0] - intrinsics.cx) / intrinsics.fx,
-                         (pts[:, 0, 1] - intrinsics.cy) / intrinsics.fy], axis=1)
+    k = intrinsics
+    norm = normalised_coordinates(uv.reshape(-1, 2), k.fx, k.fy, k.cx, k.cy, k.distortion)  # (P, 2)
     rays = np.concatenate([norm, np.ones((norm.shape[0], 1))], axis=1)  # (P, 3)
     return rays / np.linalg.norm(rays, axis=1, keepdims=True)
 
@@ -410,8 +399,9 @@ def calibrate_intrinsics_charuco(
                          "the board parameters, focus and lighting")
     flags = cv2.CALIB_FIX_K3 if fix_k3 else 0
     rms, k_matrix, dist, _, _ = cv2.calibrateCamera(object_points, image_points, size, None, None, flags=flags)
-    result = Intrinsics(float(k_matrix[0, 0]), float(k_matrix[1, 1]), float(k_matrix[0, 2]), float(k_matrix[1, 2]),
-                        tuple(float(x) for x in np.ravel(dist)[:5]), float(rms), len(object_points))
+    result = Intrinsics(fx=float(k_matrix[0, 0]), fy=float(k_matrix[1, 1]), cx=float(k_matrix[0, 2]),
+                        cy=float(k_matrix[1, 2]), distortion=tuple(float(x) for x in np.ravel(dist)[:5]),
+                        rms_px=float(rms), n_views=len(object_points))
     logger.info("intrinsics from %d views: fx=%.2f fy=%.2f cx=%.2f cy=%.2f (RMS %.3f px)", result.n_views,
                 result.fx, result.fy, result.cx, result.cy, result.rms_px)
     return result

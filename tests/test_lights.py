@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from polarshape.scene.lights import DirectionalLight, PointLight, light_from_dict, light_to_dict
+from polarshape.lights import DirectionalLight, PointLight, light_from_dict, light_to_dict
 
 
 def test_directional_light_is_normalised_and_uniform():

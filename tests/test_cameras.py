@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from polarshape.scene.cameras import OrthographicCamera, PerspectiveCamera
+from polarshape.cameras import OrthographicCamera, PerspectiveCamera
 
 
 def test_orthographic_rays_are_parallel_and_centred():

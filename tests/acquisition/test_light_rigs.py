@@ -13,8 +13,8 @@ import pytest
 from polarshape.acquisition.lights import (
     LightRig,
     LightRigError,
-    LightSpec,
     ManualLightRig,
+    RigLight,
     SerialLightRig,
     SimulatedLightRig,
     enable_camera_strobe,
@@ -111,21 +111,21 @@ def board() -> Iterator[_FakeBoard]:
 
 
 def test_light_spec_validation_and_yaml_entry() -> None:
-    spec = LightSpec(direction=(0.0, 3.0, -4.0), intensity=2.0, name="top")
+    spec = RigLight(direction=(0.0, 3.0, -4.0), intensity=2.0, name="top")
     assert spec.direction == pytest.approx((0.0, 0.6, -0.8))
     assert spec.to_capture_entry() == {"direction": pytest.approx([0.0, 0.6, -0.8]), "intensity": 2.0, "name": "top"}
-    assert LightSpec(position=(0.1, 0.2, -0.5)).to_capture_entry()["position"] == [0.1, 0.2, -0.5]
+    assert RigLight(position=(0.1, 0.2, -0.5)).to_capture_entry()["position"] == [0.1, 0.2, -0.5]
     with pytest.raises(ValueError, match="exactly one of direction or position"):
-        LightSpec()
+        RigLight()
     with pytest.raises(ValueError, match="non-zero"):
-        LightSpec(direction=(0, 0, 0))
+        RigLight(direction=(0, 0, 0))
     with pytest.raises(ValueError, match="intensity must be > 0"):
-        LightSpec(direction=(0, 0, -1), intensity=0)
+        RigLight(direction=(0, 0, -1), intensity=0)
 
 
 def test_simulated_rig_drives_its_target_and_the_strobe() -> None:
     target, cam = _Target(), _StrobeCamera()
-    specs = [LightSpec(direction=(0, 0, -1)), LightSpec(direction=(0.5, 0, -1))]
+    specs = [RigLight(direction=(0, 0, -1)), RigLight(direction=(0.5, 0, -1))]
     rig = SimulatedLightRig(target, specs, strobe_camera=cam)
     assert isinstance(rig, LightRig)
     assert rig.n_lights == 2 and rig.lights[1].direction == pytest.approx((0.4472136, 0, -0.8944272))
@@ -150,7 +150,7 @@ def test_manual_rig_prompts_through_the_injected_input() -> None:
         prompts.append(prompt)
         return next(answers)
 
-    rig = ManualLightRig([LightSpec(direction=(0, 0, -1), name="centre"), LightSpec(position=(0.2, 0, -0.5))],
+    rig = ManualLightRig([RigLight(direction=(0, 0, -1), name="centre"), RigLight(position=(0.2, 0, -0.5))],
                          input_fn=fake_input)
     rig.switch(0)
     assert rig.current == 0

@@ -1,16 +1,25 @@
-"""Light sources of the simulator: per surface point, the unit direction L to the light, the
-irradiance at normal incidence E, and how far a shadow ray must stay clear.
+"""Light sources: per surface point, the unit direction L to the light and the irradiance E.
 
-Camera frame (OpenCV: x right, y down, z forward), metres. Lights are unpolarised.
+Shared by the simulator (rendering, shadow rays) and by recovery (per-pixel L and E of a capture's
+lights). Camera frame (OpenCV: x right, y down, z forward), metres. Lights are unpolarised.
+
+Every light answers the same call, ``illuminate(points)``, so that call sites never need to know the
+light type (pytorch3d's ``lighting.py`` is the model); :class:`Lights` batches K of them:
+``Lights.illuminate(points (..., 3)) -> L (K, ..., 3), E (K, ...)`` for directional and point lights
+alike.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 from torch import Tensor
+
+__all__ = ["DirectionalLight", "Light", "Lights", "PointLight", "light_from_dict", "light_to_dict"]
 
 
 @dataclass(frozen=True)
@@ -72,6 +81,60 @@ class PointLight:
 
 
 Light = DirectionalLight | PointLight
+
+
+@dataclass(frozen=True)
+class Lights:
+    """K lights, illuminated together.
+
+    Attributes:
+        lights: the K lights, in frame order.
+    """
+
+    lights: tuple[Light, ...]
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "lights", tuple(self.lights))
+        if not self.lights:
+            raise ValueError("lights: at least one light is needed")
+
+    def __len__(self) -> int:
+        return len(self.lights)
+
+    def __iter__(self):  # noqa: ANN204 - an iterator of Light
+        return iter(self.lights)
+
+    def __getitem__(self, index: int) -> Light:
+        return self.lights[index]
+
+    @property
+    def has_point_lights(self) -> bool:
+        """True when L and E depend on where the surface is (any point light)."""
+        return any(isinstance(light, PointLight) for light in self.lights)
+
+    def illuminate(self, points: Tensor) -> tuple[Tensor, Tensor]:
+        """Per-point light directions and irradiance of every light.
+
+        Args:
+            points: (..., 3) surface points, metres, camera frame (directional lights ignore where
+                they are, but the shape sets the batch).
+
+        Returns:
+            L (K, ..., 3) unit vectors surface → light, E (K, ...) irradiance at normal incidence.
+        """
+        lit = [light.illuminate(points)[:2] for light in self.lights]
+        return torch.stack([l for l, _ in lit]), torch.stack([e for _, e in lit])
+
+    def intensities(self) -> list[float]:
+        """The K lights' intensities (directional: irradiance; point: irradiance at 1 m)."""
+        return [float(light.intensity) for light in self.lights]
+
+    @classmethod
+    def from_entries(cls, entries: Iterable[Any]) -> Lights:
+        """Lights from capture.yaml / scene.yaml entries: dicts with ``direction`` or ``position``
+        (exactly one) and ``intensity`` (:func:`light_from_dict`), or schema entries with a
+        ``to_light()`` (:class:`polarshape.io.capture.LightSpec`)."""
+        return cls(tuple(e.to_light() if hasattr(e, "to_light") else light_from_dict(e) for e in entries))
 
 
 def light_from_dict(entry: dict[str, object]) -> Light:

@@ -5,6 +5,12 @@ Sub-commands (one ``_cmd_<name>(args) -> int`` each, registered in :func:`build_
 * ``simulate SCENE.yaml --out CAPTURE_DIR [--overwrite]`` — render a capture folder
   (capture-format.md) with the simulated camera, ground truth included.
 * ``demo --out DIR [--overwrite]`` — the forward-model demo (a sphere under one light).
+* ``inspect FRAME`` — DoLP and AoLP of one raw mosaic.
+* ``run``, ``capture``, ``calibrate`` — see :mod:`polarshape.cli.run` and :mod:`polarshape.cli.acquisition`.
+
+Handlers do not catch errors: :func:`polarshape.cli.errors.reports_errors` turns every error a user
+can cause into ``error: <message>`` and the exit status (0 success, 1 refused to overwrite, 2 invalid
+input, 3 a stage of ``run`` failed).
 """
 
 from __future__ import annotations
@@ -15,39 +21,29 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
+from polarshape import __version__
+from polarshape.cli.errors import reports_errors
+
 logger = logging.getLogger(__name__)
 
 
+@reports_errors()
 def _cmd_simulate(args: argparse.Namespace) -> int:
-    from polarshape.acquisition.camera import PIXEL_FORMATS, CameraError
+    from polarshape.imaging.pixels import PIXEL_FORMATS
     from polarshape.acquisition.simulated import SimulatedCamera
-    from polarshape.io.atomic import OutputExistsError
-    from polarshape.io.capture import CaptureError
+    from polarshape.errors import CameraError, OutputExistsError
     from polarshape.scene.config import load_scene_config
 
     out = Path(args.out)
+    # Refused before the scene is even loaded, with the command-line fix in the message.
     if out.exists() and not args.overwrite:
-        print(f"error: {out} already exists; refusing to overwrite it (pass --overwrite or another --out)", file=sys.stderr)
-        return 1
-    try:
-        config = load_scene_config(args.scene)
-    except ValueError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+        raise OutputExistsError(f"{out} already exists; refusing to overwrite it (pass --overwrite or another --out)")
+    config = load_scene_config(args.scene)
     if args.pixel_format is not None and args.pixel_format not in PIXEL_FORMATS:
-        print(f"error: --pixel-format {args.pixel_format!r} is not one of {sorted(PIXEL_FORMATS)}", file=sys.stderr)
-        return 2
-    camera = SimulatedCamera(config, device=args.device, seed=args.seed)
-    try:
-        with camera:
-            camera.configure(exposure_us=args.exposure_us, gain_db=args.gain_db, pixel_format=args.pixel_format)
-            capture = camera.render_capture(out, overwrite=args.overwrite, progress=not args.quiet)
-    except OutputExistsError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 1
-    except (CameraError, CaptureError, ValueError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+        raise CameraError(f"--pixel-format {args.pixel_format!r} is not one of {sorted(PIXEL_FORMATS)}")
+    with SimulatedCamera(config, device=args.device, seed=args.seed) as camera:
+        camera.configure(exposure_us=args.exposure_us, gain_db=args.gain_db, pixel_format=args.pixel_format)
+        capture = camera.render_capture(out, overwrite=args.overwrite, progress=not args.quiet)
     mask = capture.mask
     logger.info(
         "wrote %s: %d frames of %dx%d, %d-bit, %d object super-pixels",
@@ -59,15 +55,11 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     return 0
 
 
+@reports_errors()
 def _cmd_demo(args: argparse.Namespace) -> int:
     from polarshape.demo import run_demo
-    from polarshape.io.atomic import OutputExistsError
 
-    try:
-        summary = run_demo(args.out, size=args.size, overwrite=args.overwrite)
-    except OutputExistsError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 1
+    summary = run_demo(args.out, size=args.size, overwrite=args.overwrite)
     print(
         f"wrote {summary['out']}: intensity.png, dolp.png, aolp.png, mosaic.png, stokes.npy "
         f"({summary['size']}x{summary['size']} sphere, max DoLP {summary['max_dolp']:.3f}, {summary['render_seconds']:.2f} s)"
@@ -75,17 +67,14 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+@reports_errors()
 def _cmd_inspect(args: argparse.Namespace) -> int:
     from polarshape.imaging.mosaic import MosaicLayout
     from polarshape.inspect_frame import frame_stats
 
     labels = args.layout or [90, 45, 135, 0]
     layout = MosaicLayout.from_maker([labels[:2], labels[2:]], args.angles)
-    try:
-        st = frame_stats(args.frame, bit_depth=args.bit_depth, black_level=args.black_level, layout=layout, roi=args.roi)
-    except (ValueError, OSError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+    st = frame_stats(args.frame, bit_depth=args.bit_depth, black_level=args.black_level, layout=layout, roi=args.roi)
     print(
         f"{args.frame}: mean s0 {st.mean_s0:.4f} of full scale, DoLP {st.mean_dolp:.4f}, AoLP {st.aolp_deg:+.2f} deg "
         f"(from image x toward y), {100 * st.saturated_fraction:.2f} % saturated, {st.n_superpixels} super-pixels"
@@ -100,9 +89,10 @@ def build_parser() -> argparse.ArgumentParser:
         description="Shape and reflectance from polarisation images. Start with: polarshape run configs/default.yaml",
     )
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv for debug)")
+    parser.add_argument("--version", action="version", version=f"polarshape {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    from polarshape.cli_run import add_parsers as add_run_parsers
+    from polarshape.cli.run import add_parsers as add_run_parsers
 
     add_run_parsers(sub)  # the main command first
 
@@ -150,7 +140,7 @@ def build_parser() -> argparse.ArgumentParser:
                       choices=["counterclockwise_on_screen", "clockwise_on_screen"], help="direction of the maker's labels")
     insp.set_defaults(handler=_cmd_inspect)
 
-    from polarshape.cli_acquisition import add_parsers as add_acquisition_parsers
+    from polarshape.cli.acquisition import add_parsers as add_acquisition_parsers
 
     add_acquisition_parsers(sub)
     return parser
@@ -158,13 +148,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line; returns the process exit status (0 = success, 1 = refused to
-    overwrite, 2 = invalid input)."""
+    overwrite, 2 = invalid input, 3 = a stage of ``run`` failed; see :mod:`polarshape.cli.errors`)."""
     parser = build_parser()
     args = parser.parse_args(argv)
     level = logging.WARNING - 10 * min(args.verbose, 2)
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
     return int(args.handler(args))
-
-
-if __name__ == "__main__":
-    sys.exit(main())

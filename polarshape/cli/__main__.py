@@ -1,0 +1,7 @@
+"""``python -m polarshape.cli``: the same command line as ``polarshape``."""
+
+import sys
+
+from polarshape.cli import main
+
+sys.exit(main())

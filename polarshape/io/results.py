@@ -1,0 +1,103 @@
+"""The result folder of ``polarshape run``: its files, its params.json, and what it may replace.
+
+Files (spec capture-format.md, README "Result folder"): ``normals.npy`` (H, W, 3) float32 camera-frame
+unit normals, NaN outside the mask; ``normal_map.png`` (16-bit, convention in params.json);
+``normals.exr``; ``albedo.npy`` / ``albedo.png``; ``depth.npy``; ``mask.png``; ``filled.png``;
+``config.yaml``; ``params.json`` (format :data:`RESULT_FORMAT`, with the polarshape version).
+Meshes and the report are written by their own stages into the same (temporary) folder.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Iterable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from polarshape.io.export import write_exr, write_normal_map_png, write_npy, write_scalar_map_png
+from polarshape.io.atomic import atomic_write_text
+from polarshape.io.images import write_image
+
+__all__ = ["RESULT_FORMAT", "plain_json", "replaces_input", "write_maps", "write_params"]
+
+#: Format tag of params.json.
+RESULT_FORMAT = "polarshape-result/1"
+
+
+def write_maps(
+    folder: Path, *, normals: np.ndarray, mask: np.ndarray, depth: np.ndarray, albedo: np.ndarray | None,
+    filled: np.ndarray | None, normal_convention: str, exr: bool,
+) -> list[str]:
+    """Write the per-pixel result files into ``folder``; returns what was not written, with the reason.
+
+    Args:
+        normals: (H, W, 3) float normals, NaN outside the mask. mask: (H, W) bool.
+        depth: (H, W) camera-frame z, NaN outside. albedo: (H, W) or None. filled: (H, W) bool or None.
+        normal_convention: ``opencv`` or ``opengl`` (normal_map.png). exr: also write normals.exr.
+    """
+    skipped: list[str] = []
+    write_npy(normals.astype(np.float32), folder / "normals.npy")
+    write_normal_map_png(normals, folder / "normal_map.png", convention=normal_convention)
+    if exr:
+        write_exr(normals.astype(np.float32), folder / "normals.exr")
+    else:
+        skipped.append("normals.exr: export.exr is false")
+    write_npy(depth.astype(np.float32), folder / "depth.npy")
+    write_image(folder / "mask.png", np.where(mask, 255, 0).astype(np.uint8))
+    if filled is not None:
+        write_image(folder / "filled.png", np.where(filled, 255, 0).astype(np.uint8))
+    if albedo is not None:
+        write_npy(albedo.astype(np.float32), folder / "albedo.npy")
+        finite = albedo[np.isfinite(albedo)]
+        vmax = float(np.percentile(finite, 99.5)) if finite.size else 1.0
+        write_scalar_map_png(albedo, folder / "albedo.png", 0.0, max(vmax, 1e-12))
+    else:
+        skipped.append("albedo.png: the model estimated no albedo map")
+    return skipped
+
+
+def write_params(folder: Path, params: dict[str, Any]) -> dict[str, Any]:
+    """Write ``params.json`` (JSON-ready copy of ``params``, NaN → null) atomically; returns the copy."""
+    plain = plain_json(params)
+    atomic_write_text(folder / "params.json", json.dumps(plain, indent=1, allow_nan=False))
+    return plain
+
+
+def replaces_input(path: Path, inputs: Iterable[str | Path | None]) -> bool:
+    """True when replacing ``path`` would remove input data: a capture folder, or one of ``inputs``
+    (a capture, the config, the scene) or a folder holding one."""
+    path = path.resolve()
+    if (path / "capture.yaml").exists():
+        return True
+    for item in inputs:
+        if item is None:
+            continue
+        p = Path(item).resolve()
+        if p == path or path in p.parents:
+            return True
+    return False
+
+
+def plain_json(value: Any) -> Any:
+    """JSON-ready copy: numpy/torch scalars and arrays to Python, paths to text, NaN/inf to None."""
+    if isinstance(value, dict):
+        return {str(k): plain_json(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [plain_json(v) for v in value]
+    if isinstance(value, torch.Tensor):
+        return plain_json(value.detach().cpu().tolist())
+    if isinstance(value, np.ndarray):
+        return plain_json(value.tolist())
+    if isinstance(value, np.generic):
+        return plain_json(value.item())
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, Path):
+        return str(value)
+    if value is None or isinstance(value, (bool, int, str)):
+        return value
+    raise TypeError(f"params.json: cannot serialise a {type(value).__name__}")

@@ -1,0 +1,298 @@
+"""Normal recovery: the one entry point, :func:`recover_normals`, from preprocessed inputs to normals.
+
+Steps (each timed in ``NormalsResult.timings``, each omission recorded in ``skipped``):
+
+1. **crop** to the mask's bounding box (:func:`polarshape.recover.observations.crop_inputs`);
+2. **initial normals** — robust Lambertian photometric stereo on s0, shadows and highlights
+   trimmed (:func:`polarshape.recover.photometric.robust_lambertian_ps`), run once: the start of
+   the FMBRDF fit, the whole answer of the ``lambertian`` model, and the baseline the report shows;
+3. **model choice** — ``auto`` takes ``lambertian`` when Lambertian PS explains s0 and the light is
+   unpolarised, else ``fmbrdf``;
+4. **FMBRDF path** — material and normals coarse to fine
+   (:func:`polarshape.recover.coarse_to_fine.solve_fmbrdf`), then pixels without data filled from
+   their neighbours (:func:`polarshape.recover.priors.fill_unsupported`) and, when asked, the
+   smoothness prior (:func:`polarshape.recover.priors.smooth_normals`);
+   **Lambertian path** — the PS normals and albedo, rendered with
+   :func:`polarshape.brdf.baselines.lambertian_stokes`;
+5. **paste back** into the full super-pixel grid.
+
+:func:`recover_capture` runs :func:`polarshape.recover.preprocess.preprocess_capture` first (directional
+lights; point lights need surface points, see ``polarshape run``).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from polarshape.brdf.baselines import lambertian_stokes
+from polarshape.brdf.fmbrdf import build_tables
+from polarshape.errors import CaptureError
+from polarshape.imaging.stokes import dolp
+from polarshape.io.capture import Capture
+from polarshape.recover.coarse_to_fine import FMBRDFState, SolveLog, solve_fmbrdf
+from polarshape.recover.normal_solver import CHUNK_PIXELS
+from polarshape.recover.observations import RecoveryInputs, crop_inputs, flatten_observations, paste_crop
+from polarshape.recover.options import InitialNormalsOptions, RecoveryOptions
+from polarshape.recover.photometric import RobustPSResult, robust_lambertian_ps
+from polarshape.recover.preprocess import preprocess_capture
+from polarshape.recover.priors import MIN_OBSERVATIONS, fill_unsupported, smooth_normals
+from polarshape.recover.reflectometry import render_parts
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["NormalsResult", "choose_model", "initial_normals", "recover_capture", "recover_normals"]
+
+
+@dataclass
+class NormalsResult:
+    """What :func:`recover_normals` returns, on the inputs' super-pixel grid (H, W), K lights.
+
+    Attributes:
+        normals: (H, W, 3) camera-frame unit normals, NaN outside ``mask``.
+        albedo: (H, W) body albedo k_b (FMBRDF) or Lambertian albedo, NaN outside ``mask``.
+        params: the material (FMBRDF: ior, alpha, beta, kappa, k_s, k_b (median), r_k; Lambertian:
+            albedo_median, valid_fraction).
+        model: "fmbrdf" or "lambertian".
+        mask: (H, W) bool object mask.
+        rendered: (K, 3, H, W) Stokes the fitted model predicts (0 outside the mask).
+        observed: (K, 3, H, W) observed Stokes (pixel frames, fraction of full scale).
+        initial_normals: (H, W, 3) the robust Lambertian PS normals (NaN outside the mask's box).
+        initial_valid: (H, W) bool pixels where PS found a trustworthy normal.
+        history: per-iteration records (losses, parameters).
+        timings: seconds per step.
+        skipped: what was left out, with the reason.
+        filled: (H, W) bool mask pixels whose normal came from their neighbours (FMBRDF), or None.
+    """
+
+    normals: Tensor
+    albedo: Tensor
+    params: dict[str, float]
+    model: str
+    mask: Tensor
+    rendered: Tensor
+    observed: Tensor
+    initial_normals: Tensor
+    initial_valid: Tensor
+    history: list[dict[str, Any]] = field(default_factory=list)
+    timings: dict[str, float] = field(default_factory=dict)
+    skipped: list[str] = field(default_factory=list)
+    filled: Tensor | None = None
+
+
+@dataclass(frozen=True)
+class _Solution:
+    """A model's answer on the cropped grid."""
+
+    normals: Tensor  # (h, w, 3), NaN outside the mask
+    albedo: Tensor  # (h, w)
+    rendered: Tensor  # (K, 3, h, w)
+    params: dict[str, float]
+    filled: Tensor | None = None
+
+
+def initial_normals(inputs: RecoveryInputs, options: InitialNormalsOptions = InitialNormalsOptions()) -> RobustPSResult:
+    """Robust Lambertian PS on s0 of the mask's usable observations, in bands of rows (the pixels are
+    independent: less memory traffic on large images).
+
+    Raises:
+        CaptureError: fewer than 3 lights. ValueError: coplanar lights (message names the fix).
+    """
+    if inputs.num_lights < 3:
+        raise CaptureError(f"capture: {inputs.num_lights} light(s); recovery needs at least 3 non-coplanar lights "
+                           "for the initial normals (add lights)")
+    s0 = inputs.stokes[:, 0]  # (K, H, W)
+    usable = inputs.valid & inputs.mask.unsqueeze(0)
+    noise = max(options.noise_std, inputs.noise_std)
+    h, w = inputs.shape
+    rows = max(1, CHUNK_PIXELS // max(w, 1))
+    bands = []
+    for r0 in range(0, h, rows):
+        b = slice(r0, min(r0 + rows, h))
+        bands.append(robust_lambertian_ps(
+            s0[:, b], inputs.lights[:, b], inputs.irradiance[:, b], usable[:, b], view_dirs=inputs.view[b],
+            dark_rel=options.dark_rel, outlier_rel=options.outlier_rel, saturation=None, noise_std=noise,
+        ))
+    return RobustPSResult(**{f: torch.cat([getattr(p, f) for p in bands], dim=_band_dim(f))
+                             for f in RobustPSResult.__dataclass_fields__})
+
+
+def _band_dim(name: str) -> int:
+    """The row axis of a :class:`RobustPSResult` field ((K, H, W) observation fields have it second)."""
+    return 1 if name == "used" else 0
+
+
+def _lambertian_stokes(inputs: RecoveryInputs, normals: Tensor, albedo: Tensor) -> Tensor:
+    """(K, 3, H, W) Stokes of the Lambertian model with PS albedo ρ (I = ρ E (N·L)₊ = (k_d/π) E (N·L)₊)."""
+    s = lambertian_stokes(normals.unsqueeze(0), inputs.lights, inputs.view.unsqueeze(0), k_d=math.pi * albedo)
+    return (s * inputs.irradiance.unsqueeze(-1)).permute(0, 3, 1, 2)
+
+
+def choose_model(inputs: RecoveryInputs, ps: RobustPSResult, skipped: list[str]) -> str:
+    """``auto``: Lambertian when robust PS explains s0 to 3 % of the median intensity (robust residual
+    σ; shot noise alone gives ≈ 1–2 %) and the light is unpolarised (median DoLP < 2 %, about the
+    noise level of 12-bit data), else the FMBRDF."""
+    s0 = inputs.stokes[:, 0]
+    pred = _lambertian_stokes(inputs, ps.normals, ps.albedo)[:, 0]
+    use = inputs.valid & inputs.mask.unsqueeze(0)
+    res = (s0 - pred)[use]
+    sigma = float(res.abs().median() * 1.4826) if res.numel() else 0.0
+    rho = dolp(inputs.stokes, dim=1, eps=1e-6)[use]
+    med_dolp = float(rho.median()) if rho.numel() else 0.0
+    scale = float(s0[use].median()) if bool(use.any()) else 0.0
+    if sigma <= 0.03 * scale and med_dolp < 0.02:
+        skipped.append(f"fmbrdf: Lambertian PS explains the data (robust residual σ {sigma:.2e}, median DoLP "
+                       f"{med_dolp:.3f}): model 'lambertian' chosen")
+        return "lambertian"
+    return "fmbrdf"
+
+
+def _lambertian_solution(inputs: RecoveryInputs, ps: RobustPSResult, log: SolveLog) -> _Solution:
+    """The intensity-only answer: PS normals and albedo; the loss is the RMS s0 residual."""
+    mask = inputs.mask
+    normals = torch.where(mask[..., None], ps.normals, torch.full_like(ps.normals, math.nan))
+    albedo = torch.where(mask, ps.albedo, torch.full_like(ps.albedo, math.nan))
+    rendered = torch.where(mask, _lambertian_stokes(inputs, ps.normals, ps.albedo), torch.zeros(()))
+    residual = (rendered[:, 0] - inputs.stokes[:, 0])[inputs.valid & mask]
+    rms = float(residual.pow(2).mean().sqrt()) if residual.numel() else math.nan
+    n_mask = int(mask.sum())
+    params = {
+        "albedo_median": float(ps.albedo[mask].median()) if n_mask else math.nan,
+        "valid_fraction": float((ps.valid & mask).sum()) / max(n_mask, 1),
+    }
+    log.history.append({"iteration": 0, "loss": rms, "loss_name": "rms_s0_residual"})
+    log.skipped += ["reflectometry: the lambertian model has no material fit", "joint refinement: lambertian model"]
+    return _Solution(normals, albedo, rendered, params)
+
+
+def _render_fmbrdf(inputs: RecoveryInputs, state: FMBRDFState) -> Tensor:
+    """(K, 3, H, W) Stokes rendered with the recovered normals, parameters and albedo (0 outside the mask)."""
+    pixels = inputs.mask
+    obs = flatten_observations(inputs, pixels)
+    p = state.params
+    with torch.no_grad():
+        tables = build_tables(ior=p.ior, alpha=p.alpha, beta=p.beta, kappa=p.kappa, device=inputs.stokes.device)
+        surf, body = render_parts(tables, state.normals[pixels], obs)
+        s = p.k_s * surf + state.k_b[pixels][:, None, None] * body  # (P, K, 3)
+    h, w = inputs.shape
+    out = torch.zeros(h, w, *s.shape[1:], dtype=s.dtype, device=s.device)
+    out[pixels] = s
+    return out.permute(2, 3, 0, 1)
+
+
+def _fmbrdf_solution(inputs: RecoveryInputs, ps: RobustPSResult, options: RecoveryOptions, *, seed: int,
+                     progress: bool, log: SolveLog) -> _Solution:
+    """Coarse-to-fine FMBRDF solve from the PS normals, fill, optional smoothness prior, render."""
+    if not inputs.has_polarisation:
+        log.skipped.append("polarisation: no linear polarisation above the noise (no polariser or an unpolarised "
+                           "scene): intensity-only fit")
+    state, _ = solve_fmbrdf(inputs, ps.normals, options, seed=seed, progress=progress, log=log)
+    supported = inputs.valid.sum(0) >= MIN_OBSERVATIONS
+    normals, k_b, filled = fill_unsupported(state.normals, state.k_b, inputs.mask, supported)
+    if bool(filled.any()):
+        log.skipped.append(f"fill: {int(filled.sum())} mask pixels with < {MIN_OBSERVATIONS} usable observations "
+                           "took their neighbours' normal and albedo (result.filled)")
+    else:
+        normals, k_b = state.normals, state.k_b
+    if options.smoothness > 0:
+        t0 = time.perf_counter()
+        normals, k_b = smooth_normals(inputs, normals, k_b, state.params, per_pixel_albedo=options.per_pixel_albedo,
+                                      smoothness=options.smoothness)
+        log.add_time("smoothing", t0)
+    else:
+        log.skipped.append("smoothness: 0, per-pixel maximum-likelihood normals (no spatial prior)")
+    state = FMBRDFState(state.params, normals, k_b)
+    t0 = time.perf_counter()
+    rendered = _render_fmbrdf(inputs, state)
+    log.add_time("render", t0)
+    if not options.per_pixel_albedo:
+        log.skipped.append("per_pixel_albedo: disabled by config (one global k_b)")
+    return _Solution(normals, k_b, rendered, state.params.as_dict(), filled)
+
+
+def recover_normals(
+    inputs: RecoveryInputs,
+    options: RecoveryOptions = RecoveryOptions(),
+    initial: InitialNormalsOptions = InitialNormalsOptions(),
+    *,
+    seed: int = 0,
+    progress: bool = False,
+) -> NormalsResult:
+    """Per-pixel normals and the reflectance of preprocessed inputs (module docstring: the steps).
+
+    Args:
+        inputs: :func:`polarshape.recover.preprocess.preprocess_capture`'s output (K ≥ 3 lights).
+        options: the recovery's options (model, material fit, priors).
+        initial: the initial normals' photometric-stereo thresholds.
+        seed: seed of the subsampling. progress: tqdm bars.
+
+    Returns:
+        :class:`NormalsResult` on the inputs' grid.
+
+    Raises:
+        CaptureError: fewer than 3 lights. ValueError: coplanar lights.
+    """
+    log = SolveLog()
+    crop = crop_inputs(inputs)
+    if crop.shape != inputs.shape:
+        log.skipped.append(f"crop: solved on the mask's bounding box {crop.shape} of {inputs.shape} super-pixels")
+    t0 = time.perf_counter()
+    ps = initial_normals(crop, initial)
+    log.timings["init_lambertian"] = time.perf_counter() - t0
+    model = choose_model(crop, ps, log.skipped) if options.model == "auto" else options.model
+    if model == "lambertian":
+        sol = _lambertian_solution(crop, ps, log)
+    else:
+        sol = _fmbrdf_solution(crop, ps, options, seed=seed, progress=progress, log=log)
+    log.timings["total"] = time.perf_counter() - log.t_start
+    return NormalsResult(
+        normals=paste_crop(sol.normals, crop, inputs, channels_last=True),
+        albedo=paste_crop(sol.albedo, crop, inputs),
+        params=sol.params, model=model, mask=inputs.mask.clone(),
+        rendered=paste_crop(sol.rendered, crop, inputs, 0.0), observed=inputs.stokes,
+        initial_normals=paste_crop(ps.normals, crop, inputs, channels_last=True),
+        initial_valid=paste_crop(ps.valid & crop.mask, crop, inputs, False),
+        history=log.history, timings=log.timings, skipped=log.skipped,
+        filled=None if sol.filled is None else paste_crop(sol.filled, crop, inputs, False),
+    )
+
+
+def recover_capture(
+    capture: Capture,
+    options: RecoveryOptions = RecoveryOptions(),
+    initial: InitialNormalsOptions = InitialNormalsOptions(),
+    *,
+    demosaic: str = "bilinear",
+    sample_at: str = "centre",
+    device: torch.device | str = "cpu",
+    dtype: torch.dtype = torch.float32,
+    seed: int = 0,
+    progress: bool = False,
+) -> NormalsResult:
+    """Preprocess a capture under directional lights and recover its normals and reflectance.
+
+    Args:
+        capture: the capture (frames, lights, mask); directional lights (point lights need surface
+            points: see :func:`polarshape.recover.preprocess.preprocess_capture`).
+        options, initial: as for :func:`recover_normals`.
+        demosaic, sample_at: how and where each block's Stokes vector is estimated.
+        device, dtype: of the solve. seed: subsampling seed (torch is seeded with it too).
+
+    Returns:
+        :class:`NormalsResult` at the capture's super-pixel resolution (H, W) = frames / 2;
+        ``timings["preprocess"]`` included.
+    """
+    torch.manual_seed(seed)
+    t0 = time.perf_counter()
+    inputs = preprocess_capture(capture, dtype=dtype, device=device, demosaic=demosaic, sample_at=sample_at)
+    t_pre = time.perf_counter() - t0
+    result = recover_normals(inputs, options, initial, seed=seed, progress=progress)
+    result.timings["preprocess"] = t_pre
+    result.timings["total"] += t_pre
+    return result

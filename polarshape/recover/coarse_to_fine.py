@@ -1,0 +1,304 @@
+"""The FMBRDF solve: material and normals alternated on an image pyramid, coarsest level first.
+
+On a pyramid (2×2 averaging, :func:`polarshape.recover.observations.downsample_inputs`) whose
+coarsest level holds at most ``4 · subsample_pixels`` pixels, the coarsest level alternates
+
+a. *global parameters* (μ, α, β, [κ]; k_s and per-pixel k_b in closed form) on a random subsample
+   of ``subsample_pixels`` pixels (:func:`polarshape.recover.reflectometry.fit_reflectance`);
+b. *normals*: per-pixel Levenberg–Marquardt (:func:`polarshape.recover.normal_solver.refine_normals`),
+   then neighbour propagation (:func:`polarshape.recover.normal_solver.propagate_normals`).
+
+The alternation stops when the loss changed by ≤ 0.1 % over the last two outer iterations (a
+window, not one step) or after ``max_outer_iterations``. Finer levels start from the upsampled
+normals and run step b only. With ``fit_kappa`` None, κ is tested once the coarse level has
+converged: a cheap probe on coarse tables, then a fit; kept only if it lowers the loss by ≥ 1 %
+(else κ = 0, the separable fast path, and the skip recorded).
+
+Robust loss: Huber on channel-weighted Stokes residuals, δ = 3 × the robust (MAD) residual σ of the
+initial fit, floored at 4 quantisation steps (:func:`polarshape.recover.normal_solver.huber_delta`).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass, field
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+from tqdm.auto import tqdm
+
+from polarshape.brdf.fmbrdf import build_tables
+from polarshape.brdf.params import FMBRDFParams
+from polarshape.recover.normal_solver import (
+    NormalProblem, huber_delta, neighbour_index, propagate_normals, refine_normals, unit,
+)
+from polarshape.recover.observations import Observations, RecoveryInputs, downsample_inputs, flatten_observations
+from polarshape.recover.options import RecoveryOptions
+from polarshape.recover.reflectometry import ALPHA_GRID, fit_reflectance, objective, render_parts, solve_albedos
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["FMBRDFState", "SolveLog", "build_pyramid", "fit_level", "profile_alpha", "solve_fmbrdf"]
+
+
+@dataclass
+class SolveLog:
+    """What a solve reports besides its result: per-iteration records, seconds per step, what it skipped."""
+
+    history: list[dict] = field(default_factory=list)
+    timings: dict[str, float] = field(default_factory=dict)
+    skipped: list[str] = field(default_factory=list)
+    t_start: float = field(default_factory=time.perf_counter)
+
+    def add_time(self, name: str, since: float) -> None:
+        """Add the seconds since ``since`` (a ``time.perf_counter()`` value) to ``timings[name]``."""
+        self.timings[name] = self.timings.get(name, 0.0) + time.perf_counter() - since
+
+
+@dataclass(frozen=True)
+class FMBRDFState:
+    """A solution on one grid: the material, normals (H, W, 3) (NaN outside the mask), k_b (H, W)."""
+
+    params: FMBRDFParams
+    normals: Tensor
+    k_b: Tensor
+
+
+def _subsample(p: int, n: int, seed: int, device: torch.device) -> Tensor:
+    if p <= n:
+        return torch.arange(p, device=device)
+    gen = torch.Generator().manual_seed(seed)
+    return torch.randperm(p, generator=gen)[:n].sort().values.to(device)
+
+
+def profile_alpha(normals: Tensor, obs: Observations, params: FMBRDFParams, per_pixel: bool, delta: float) -> FMBRDFParams:
+    """Starting α for intensity-only data: each grid α scored after a few normal iterations.
+
+    Without polarisation nothing but the lobe ties the normals to the material, and the initial
+    (Lambertian) normals lean toward the highlights: scored at those normals a broad lobe wins, the
+    fit then drops the specular term (k_s → 0) and never recovers it (measured on a 56² sphere,
+    α 0.3, no polariser: α 0.97, β 6, k_s 0, 3.2° mean error). Scoring each α after the normals
+    of the subsample have moved to it (4 LM iterations) ranks the lobes as the data do.
+
+    Args:
+        normals: (P, 3) subsample normals; obs: its observations (intensity only).
+        params: current parameters (all but α kept).
+        per_pixel: per-pixel body albedo.
+        delta: Huber threshold.
+
+    Returns:
+        ``params`` with the best α of :data:`polarshape.recover.reflectometry.ALPHA_GRID`.
+    """
+    best = (math.inf, params.alpha)
+    for a in ALPHA_GRID:
+        tables = build_tables(ior=params.ior, alpha=a, beta=params.beta, kappa=params.kappa, device=normals.device,
+                              n_grid=33)
+        surf, body = render_parts(tables, normals, obs)
+        k_s, k_b = solve_albedos(surf, body, obs, per_pixel=per_pixel, polarised=False)
+        problem = NormalProblem.build(tables, obs.stokes, float(k_s), per_pixel, float(k_b.median()), False, delta)
+        _, _, loss, _ = refine_normals(problem, normals, obs, max_iter=4)
+        total = float(loss.sum())
+        if total < best[0]:
+            best = (total, a)
+    logger.info("intensity-only: α %.3g from the profiled grid", best[1])
+    return FMBRDFParams(**{**vars(params), "alpha": best[1]})
+
+
+def _global_step(n_sub: Tensor, obs_sub: Observations, params: FMBRDFParams, options: RecoveryOptions, *, it: int,
+                 fit_kappa: bool, polarised: bool, delta: float) -> FMBRDFParams:
+    """Step a: the material on the subsample, for fixed normals (schedule by outer iteration ``it``)."""
+    grid = it == 0  # the coarse α grid starts the first fit only
+    if grid and not polarised:
+        params = profile_alpha(n_sub, obs_sub, params, options.per_pixel_albedo, delta)
+        grid = False
+    fit = fit_reflectance(
+        n_sub, obs_sub, init=params, per_pixel_albedo=options.per_pixel_albedo, fit_kappa=fit_kappa,
+        polarised=polarised, delta=delta, grid_search=grid, max_iter=12 if it == 0 else 4 if it == 1 else 2,
+        # the initial (Lambertian) normals are biased by highlights: fit the lobe width first,
+        # free μ and β once the normals have moved to the model
+        fit_names=("alpha",) if it == 0 else ("alpha", "beta") if it == 1 else None,
+    )
+    return fit.params
+
+
+def _kappa_probe(n_sub: Tensor, obs_sub: Observations, params: FMBRDFParams, options: RecoveryOptions, *,
+                 polarised: bool, delta: float) -> tuple[float, FMBRDFParams | None]:
+    """Relative loss gain of κ > 0 over κ = 0 and the κ fit (None when the probe saw no gain).
+
+    Cheap probe first (coarse tables): does any κ lower the loss by ≥ 1 %? It holds μ, α, β at their
+    κ = 0 values, so a weak correlation can go unseen (measured: κ = 40 data not detected;
+    ``fit_kappa: true`` recovers it).
+    """
+    def loss_at(p: FMBRDFParams, n_grid: int = 65) -> float:
+        return objective(p, n_sub, obs_sub, per_pixel_albedo=options.per_pixel_albedo, polarised=polarised,
+                         delta=delta, n_grid=n_grid)
+
+    base_loss = loss_at(params, 33)
+    probes = {kap: loss_at(FMBRDFParams(**{**vars(params), "kappa": kap}), 33) for kap in (5.0, 20.0, 60.0)}
+    best_kappa = min(probes, key=lambda kap: probes[kap])
+    trial_loss, trial = probes[best_kappa], None
+    if (base_loss - trial_loss) >= 0.01 * base_loss:
+        fit = fit_reflectance(n_sub, obs_sub, init=FMBRDFParams(**{**vars(params), "kappa": best_kappa}),
+                              per_pixel_albedo=options.per_pixel_albedo, fit_kappa=True, polarised=polarised,
+                              delta=delta, grid_search=False, max_iter=6)
+        trial_loss, trial = fit.loss, fit.params
+        base_loss = loss_at(params)  # compare like with like: the fit's loss uses full-resolution tables
+    return (base_loss - trial_loss) / max(base_loss, 1e-30), trial
+
+
+@dataclass
+class _Level:
+    """The working state of :func:`fit_level` on one pyramid level."""
+
+    pixels: Tensor  # (H, W) bool
+    obs: Observations
+    n: Tensor  # (P, 3)
+    k_b: Tensor  # (P,)
+    params: FMBRDFParams
+    delta: float
+    neighbours: Tensor | None
+
+
+def _normal_step(lv: _Level, options: RecoveryOptions, polarised: bool, *, max_iter: int, level: int, it: int
+                 ) -> tuple[NormalProblem, Tensor, int]:
+    """Step b: per-pixel normals for the level's material (updates ``lv.n``, ``lv.k_b``); returns the
+    problem, the per-pixel loss and the LM iterations."""
+    p = lv.params
+    tables = build_tables(ior=p.ior, alpha=p.alpha, beta=p.beta, kappa=p.kappa, device=lv.n.device)
+    problem = NormalProblem.build(tables, lv.obs.stokes, p.k_s, options.per_pixel_albedo, p.k_b, polarised, lv.delta)
+    lv.n, lv.k_b, loss_pp, n_iter = refine_normals(problem, lv.n, lv.obs, max_iter=max_iter)
+    if lv.neighbours is not None:
+        lv.n, lv.k_b, loss_pp, moved = propagate_normals(problem, lv.n, lv.k_b, loss_pp, lv.obs, lv.neighbours)
+        if moved:
+            logger.info("level %d outer %d: %d pixels took a neighbour's normal", level, it, moved)
+    return problem, loss_pp, n_iter
+
+
+def _mean_loss(loss_pp: Tensor, obs: Observations) -> float:
+    return float(loss_pp.sum() / obs.weight.sum().clamp_min(1.0))
+
+
+def _decide_kappa(lv: _Level, sub_idx: Tensor, options: RecoveryOptions, polarised: bool, log: SolveLog) -> bool:
+    """Test κ once the κ = 0 alternation converged; True when κ was kept (``lv.params`` updated)."""
+    t0 = time.perf_counter()
+    gain, trial = _kappa_probe(lv.n[sub_idx], lv.obs.select(sub_idx), lv.params, options, polarised=polarised,
+                               delta=lv.delta)
+    log.timings["kappa_test"] = time.perf_counter() - t0
+    if gain < 0.01 or trial is None:
+        log.skipped.append(f"kappa: κ > 0 changed the loss by {-100 * gain:+.2f}% (needs ≤ -1%): κ = 0, separable "
+                           "fast path (fit_kappa: true forces κ)")
+        return False
+    lv.params = trial
+    return True
+
+
+def fit_level(inputs: RecoveryInputs, normals: Tensor, params: FMBRDFParams, options: RecoveryOptions, *,
+              fit_globals: bool, level: int, seed: int = 0, progress: bool = False, log: SolveLog) -> FMBRDFState:
+    """Alternate global parameters and normals on one pyramid level (normals only unless ``fit_globals``).
+
+    Args:
+        inputs: the level's inputs; normals: (H, W, 3) start; params: the current material.
+        options: recovery options; level: pyramid level (0 = finest); seed: subsample seed.
+        log: history, timings and skips are appended to it.
+    """
+    pixels = inputs.mask
+    obs = flatten_observations(inputs, pixels)
+    n = normals[pixels]
+    polarised = inputs.has_polarisation
+    lv = _Level(pixels, obs, n, torch.zeros(n.shape[0], dtype=n.dtype, device=n.device), params,
+                huber_delta(obs, inputs.noise_std), neighbour_index(pixels) if options.propagate else None)
+    sub_idx = _subsample(n.shape[0], options.subsample_pixels, seed + level, n.device)
+    fit_kappa = options.fit_kappa
+    kappa_decided = fit_kappa is not None
+    window: list[float] = []
+    outer = options.max_outer_iterations if fit_globals else 1
+    for it in tqdm(range(outer), desc=f"level {level}", unit="iteration", disable=not progress):
+        if fit_globals:
+            t0 = time.perf_counter()
+            lv.params = _global_step(lv.n[sub_idx], obs.select(sub_idx), lv.params, options, it=it,
+                                     fit_kappa=bool(fit_kappa), polarised=polarised, delta=lv.delta)
+            log.add_time("global_params", t0)
+        t0 = time.perf_counter()
+        problem, loss_pp, n_iter = _normal_step(lv, options, polarised, max_iter=6 if fit_globals else 10,
+                                                level=level, it=it)
+        log.add_time("normals", t0)
+        if it == 0 and fit_globals:  # δ from the first fit's residuals
+            new_delta = huber_delta(obs, inputs.noise_std, problem.residual(lv.n, obs)[0])
+            if abs(new_delta - lv.delta) > 0.25 * lv.delta:
+                lv.delta = new_delta
+                loss_pp = problem.with_delta(new_delta).pixel_loss(lv.n, obs)
+        loss = _mean_loss(loss_pp, obs)
+        log.history.append({"stage": f"level{level}", "iteration": it, "loss": loss, "lm_iterations": n_iter,
+                            "seconds": time.perf_counter() - log.t_start, **lv.params.as_dict()})
+        logger.info("level %d outer %d: loss %.6g, %s", level, it, loss, lv.params.as_dict())
+        window.append(loss)
+        # converged: the loss changed by ≤ 0.1 % over the last two outer iterations (a window)
+        if len(window) >= 3 and abs(window[-3] - window[-1]) <= 1e-3 * abs(window[-3]):
+            if not kappa_decided and fit_globals:
+                kappa_decided = True
+                if _decide_kappa(lv, sub_idx, options, polarised, log):
+                    fit_kappa = True
+                    window.clear()
+                    continue
+            break
+    else:
+        if fit_globals:
+            logger.info("level %d: reached max_outer_iterations=%d", level, outer)
+    if not kappa_decided and fit_globals and not fit_kappa:
+        log.skipped.append("kappa: not tested (alternation did not converge within max_outer_iterations): κ kept at 0")
+    normals_img = torch.full_like(normals, math.nan)
+    normals_img[pixels] = lv.n
+    kb_img = torch.full(pixels.shape, math.nan, dtype=n.dtype, device=n.device)
+    kb_img[pixels] = lv.k_b
+    return FMBRDFState(lv.params, normals_img, kb_img)
+
+
+def build_pyramid(inputs: RecoveryInputs, options: RecoveryOptions) -> list[RecoveryInputs]:
+    """[finest, …, coarsest]: halve while the mask holds more than 4 · ``subsample_pixels`` pixels
+    and the grid is at least 32 across (one level without ``coarse_to_fine``)."""
+    levels = [inputs]
+    if options.coarse_to_fine:
+        while int(levels[-1].mask.sum()) > 4 * options.subsample_pixels and min(levels[-1].shape) >= 32:
+            levels.append(downsample_inputs(levels[-1]))
+    return levels
+
+
+def _start_from(coarser: FMBRDFState, fallback: Tensor) -> Tensor:
+    """Normals (H, W, 3) of the next finer level: the coarser solution upsampled (nearest), the
+    ``fallback`` (Lambertian normals of this level) where the coarser level has none."""
+    up = torch.nan_to_num(coarser.normals.permute(2, 0, 1).unsqueeze(0), nan=0.0)
+    up = F.interpolate(up, scale_factor=2, mode="nearest")[0].permute(1, 2, 0)
+    h, w = fallback.shape[:2]
+    full = fallback.clone()
+    hh, ww = min(h, up.shape[0]), min(w, up.shape[1])
+    ok = up[:hh, :ww].norm(dim=-1) > 0.5
+    full[:hh, :ww][ok] = unit(up[:hh, :ww][ok])
+    return full
+
+
+def solve_fmbrdf(inputs: RecoveryInputs, initial_normals: Tensor, options: RecoveryOptions, *, seed: int = 0,
+                 progress: bool = False, log: SolveLog | None = None) -> tuple[FMBRDFState, SolveLog]:
+    """Material and normals of ``inputs`` from ``initial_normals`` (H, W, 3), coarse to fine (module docstring).
+
+    Returns:
+        The finest level's :class:`FMBRDFState` and the :class:`SolveLog`.
+    """
+    log = SolveLog() if log is None else log
+    levels = build_pyramid(inputs, options)
+    if len(levels) == 1:
+        log.skipped.append("coarse_to_fine: single level (image small enough or disabled)")
+    t0 = time.perf_counter()
+    initial = [initial_normals]  # Lambertian normals at every level (fallback where the coarser level has none)
+    for _ in range(len(levels) - 1):
+        initial.append(unit(F.avg_pool2d(initial[-1].permute(2, 0, 1).unsqueeze(0), 2)[0].permute(1, 2, 0)))
+    log.timings["pyramid"] = time.perf_counter() - t0
+    state: FMBRDFState | None = None
+    for depth in range(len(levels) - 1, -1, -1):
+        start = initial[depth] if state is None else _start_from(state, initial[depth])
+        state = fit_level(levels[depth], start, FMBRDFParams() if state is None else state.params, options,
+                          fit_globals=state is None, level=depth, seed=seed, progress=progress, log=log)
+    assert state is not None  # at least one level
+    return state, log
