@@ -83,3 +83,25 @@ def test_the_stage_check_fails_on_a_backward_import(tmp_path: Path) -> None:
     assert stage_of(name) > stage_of("polarshape.imaging.stokes")
     with pytest.raises(AssertionError, match="no stage"):
         stage_of("polarshape.unknown_module")
+
+
+#: Import name of each distribution whose name differs from it.
+_IMPORT_NAMES = {"opencv-contrib-python-headless": "cv2", "pyyaml": "yaml", "pyserial": "serial"}
+
+
+def test_every_dependency_is_used() -> None:
+    """No unused dependency: each [project] dependency of pyproject.toml is imported by the package."""
+    text = (ROOT / "pyproject.toml").read_text()
+    block = text.split("dependencies = [", 1)[1].split("]", 1)[0]
+    names = [line.strip().strip('",').split(">")[0].split("<")[0].split("=")[0].strip()
+             for line in block.splitlines() if line.strip().startswith('"')]
+    imported = set()
+    for path in (ROOT / "polarshape").rglob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Import):
+                imported |= {a.name.split(".")[0] for a in node.names}
+            elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+                imported.add(node.module.split(".")[0])
+    assert len(names) > 5, names
+    unused = [n for n in names if _IMPORT_NAMES.get(n.lower(), n) not in imported]
+    assert not unused, f"declared but imported nowhere in polarshape/: {unused}"
