@@ -49,7 +49,7 @@ from polarshape.imaging.pixels import counts_to_float
 from polarshape.checks import to_numpy
 from polarshape.io.atomic import atomic_directory, atomic_write_text
 from polarshape.io.capture import Capture, load_capture, write_capture
-from polarshape.io.results import RESULT_FORMAT, replaces_input, write_maps, write_params
+from polarshape.io.results import RESULT_FORMAT, output_refusal, write_maps, write_params
 from polarshape.metrics import angular_error_deg, angular_error_stats, depth_rmse_aligned
 from polarshape.normals import NormalsResult, recover_normals
 from polarshape.recover.observations import RecoveryInputs
@@ -420,7 +420,8 @@ def run_pipeline(
 
     Raises:
         ConfigError: no output folder, or ``device: cuda`` without a GPU.
-        OutputExistsError: the folder exists and ``overwrite`` is False, or it holds input data.
+        OutputExistsError: the folder exists and ``overwrite`` is False; or it is, holds or lies inside
+            an input; or it exists and is not a polarshape result (``overwrite`` replaces results only).
         PipelineError, CaptureError, ValueError: a stage cannot run (message names the fix).
     """
     t_start = time.perf_counter()
@@ -433,7 +434,8 @@ def run_pipeline(
     inputs_paths = [config.input.path, config.input.scene, config.input.session, config_path]
     log = _StageLog(config.progress)
     try:
-        with atomic_directory(out, overwrite=overwrite, protect=lambda p: replaces_input(p, inputs_paths)) as work:
+        refusal = lambda p: output_refusal(p, inputs_paths, overwrite=overwrite)  # noqa: E731
+        with atomic_directory(out, overwrite=overwrite, protect=refusal) as work:
             params = _run_stages(config, work, out, device, log, t_start)
     finally:
         log.close()

@@ -197,6 +197,56 @@ def test_refuses_to_overwrite_a_result_or_an_input(capture_config: Path, small_c
         run_pipeline(config, capture_config.parent, overwrite=True, config_path=capture_config)
 
 
+def test_overwrite_replaces_only_a_result_and_nothing_inside_an_input(
+    capture_config: Path, small_capture: Path, tmp_path: Path
+) -> None:
+    """Issue 12's data-loss cases: --overwrite into the capture's frames folder, onto its capture.yaml,
+    or onto a folder that is not a polarshape result is refused and nothing is touched; a previous
+    result (and an empty folder) is replaced."""
+    config = _load(capture_config)
+    frames = small_capture / "frames"
+    before = sorted(p.name for p in frames.iterdir())
+    yaml_before = (small_capture / "capture.yaml").read_text()
+    for target, reason in ((frames, "inside the input"), (small_capture / "capture.yaml", "inside the input"),
+                           (small_capture / "new_result", "inside the input")):
+        with pytest.raises(OutputExistsError, match=reason):
+            run_pipeline(config, target, overwrite=True)
+    assert sorted(p.name for p in frames.iterdir()) == before
+    assert (small_capture / "capture.yaml").read_text() == yaml_before and not (small_capture / "new_result").exists()
+    other = tmp_path / "projects"
+    (other / "cap_a").mkdir(parents=True)
+    (other / "notes.txt").write_text("mine")
+    with pytest.raises(OutputExistsError, match="not a polarshape result"):
+        run_pipeline(config, other, overwrite=True)
+    assert (other / "notes.txt").read_text() == "mine" and (other / "cap_a").is_dir()
+    assert not [p for p in tmp_path.rglob(".*partial*")]  # refused before anything was created
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    first = run_pipeline(config, empty, overwrite=True)
+    again = run_pipeline(config, empty, overwrite=True)  # a previous result: replaced
+    assert first.params["format"] == again.params["format"] == "polarshape-result/1"
+
+
+def test_sigterm_leaves_no_partial_folder(capture_config: Path, tmp_path: Path) -> None:
+    """`kill` / `timeout` (SIGTERM) in the middle of a run: exit 143, no result, no .partial folder."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    out = tmp_path / "res"
+    cmd = [sys.executable, "-m", "polarshape.cli", "run", str(capture_config), "--out", str(out), "-q"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 120
+    while not list(tmp_path.glob(".res.partial-*")) and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert proc.poll() is None, "the run ended before it could be interrupted"
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 128 + signal.SIGTERM, err
+    assert not out.exists() and not list(tmp_path.glob(".res.*")), list(tmp_path.iterdir())
+
+
 def test_interrupted_run_leaves_no_half_written_result(capture_config: Path, tmp_path: Path, monkeypatch) -> None:
     import polarshape.io.results as results
 

@@ -16,9 +16,12 @@ input, 3 a stage of ``run`` failed).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
+import signal
 import sys
-from collections.abc import Sequence
+import threading
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 from polarshape import __version__
@@ -146,6 +149,25 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+@contextlib.contextmanager
+def _exit_on_sigterm() -> Iterator[None]:
+    """While the command runs, SIGTERM (``kill``, ``timeout``) ends it like Ctrl-C does: through the
+    ``finally`` blocks, so a half-written result folder is removed (exit status 143 = 128 + SIGTERM).
+    The previous handler is restored afterwards (``main`` may be called in-process)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def _terminate(signum: int, frame: object) -> None:
+        raise SystemExit(128 + signum)
+
+    previous = signal.signal(signal.SIGTERM, _terminate)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line; returns the process exit status (0 = success, 1 = refused to
     overwrite, 2 = invalid input, 3 = a stage of ``run`` failed; see :mod:`polarshape.cli.errors`)."""
@@ -153,4 +175,5 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     level = logging.WARNING - 10 * min(args.verbose, 2)
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
-    return int(args.handler(args))
+    with _exit_on_sigterm():
+        return int(args.handler(args))

@@ -3,19 +3,26 @@ written over a user's file unless asked.
 
 Files are written to a temporary name in the destination folder and renamed into place
 (``os.replace`` is atomic on POSIX within one file system). Folders are assembled under a hidden
-temporary name beside the destination and renamed once complete.
+temporary name beside the destination, ``.NAME.partial-PID-XXXX``, and renamed once complete; an
+interrupted process removes it on the way out (Ctrl-C, and SIGTERM through the command line's
+handler), and a process killed outright (SIGKILL) leaves one that the next write to the same
+destination removes, once its process ``PID`` is gone.
 """
 
 from __future__ import annotations
 
 import contextlib
+import logging
 import os
+import re
 import shutil
 import tempfile
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
 from polarshape.errors import OutputExistsError
+
+logger = logging.getLogger(__name__)
 
 
 def _check_destination(path: Path, overwrite: bool) -> None:
@@ -66,12 +73,38 @@ def atomic_write_text(path: str | os.PathLike[str], text: str, *, overwrite: boo
     return atomic_write_bytes(path, text.encode("utf-8"), overwrite=overwrite)
 
 
+def _process_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's live process
+        return True
+    return True
+
+
+def remove_stale_partials(path: Path) -> list[Path]:
+    """Remove the ``.NAME.partial-PID-*`` folders beside ``path`` whose process is gone (a run
+    killed before it could clean up); live processes' folders are kept. Returns what was removed."""
+    pattern = re.compile(rf"^\.{re.escape(path.name)}\.partial-(\d+)-")
+    removed = []
+    if not path.parent.is_dir():
+        return removed
+    for entry in path.parent.iterdir():
+        match = pattern.match(entry.name)
+        if match and entry.is_dir() and not _process_alive(int(match.group(1))):
+            shutil.rmtree(entry, ignore_errors=True)
+            removed.append(entry)
+            logger.info("removed %s, left by an interrupted run", entry)
+    return removed
+
+
 @contextlib.contextmanager
 def atomic_directory(
     path: str | os.PathLike[str],
     *,
     overwrite: bool = False,
-    protect: Callable[[Path], bool] | None = None,
+    protect: Callable[[Path], str | None] | None = None,
 ) -> Iterator[Path]:
     """Build a folder under a temporary name and move it to ``path`` only when complete.
 
@@ -79,18 +112,21 @@ def atomic_directory(
         path: the final folder.
         overwrite: replace an existing folder at ``path`` (it is removed only after the new one is
             complete, so an interrupted run leaves the old one intact).
-        protect: optional predicate; if it returns True for ``path`` the folder is never replaced
-            (e.g. it is the input capture of the run), whatever ``overwrite`` says.
+        protect: optional check of ``path``, called whether it exists or not: a reason (text) why
+            nothing may be written there (e.g. it is, holds or lies inside the run's input), or None.
+            A reason refuses the folder whatever ``overwrite`` says.
 
     Yields:
         The temporary folder to write into.
     """
     path = Path(path).absolute()
-    if protect is not None and path.exists() and protect(path):
-        raise OutputExistsError(f"{path} holds input data; refusing to write a result over it")
+    reason = protect(path) if protect is not None else None
+    if reason:
+        raise OutputExistsError(f"{path}: {reason}; refusing to write a result there")
     _check_destination(path, overwrite)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.partial-", dir=path.parent))
+    remove_stale_partials(path)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.partial-{os.getpid()}-", dir=path.parent))
     try:
         yield tmp
         _check_destination(path, overwrite)

@@ -22,7 +22,7 @@ from polarshape.io.export import write_exr, write_normal_map_png, write_npy, wri
 from polarshape.io.atomic import atomic_write_text
 from polarshape.io.images import write_image
 
-__all__ = ["RESULT_FORMAT", "plain_json", "replaces_input", "write_maps", "write_params"]
+__all__ = ["RESULT_FORMAT", "is_result_folder", "output_refusal", "plain_json", "write_maps", "write_params"]
 
 #: Format tag of params.json.
 RESULT_FORMAT = "polarshape-result/1"
@@ -67,19 +67,42 @@ def write_params(folder: Path, params: dict[str, Any]) -> dict[str, Any]:
     return plain
 
 
-def replaces_input(path: Path, inputs: Iterable[str | Path | None]) -> bool:
-    """True when replacing ``path`` would remove input data: a capture folder, or one of ``inputs``
-    (a capture, the config, the scene) or a folder holding one."""
+def is_result_folder(path: Path) -> bool:
+    """True when ``path`` is a folder written by ``polarshape run``: its params.json has the format
+    tag :data:`RESULT_FORMAT`."""
+    try:
+        return json.loads((path / "params.json").read_text()).get("format") == RESULT_FORMAT
+    except (OSError, ValueError, AttributeError):
+        return False
+
+
+def output_refusal(path: Path, inputs: Iterable[str | Path | None], *, overwrite: bool) -> str | None:
+    """Why a result folder may not be written at ``path``, or None when it may.
+
+    Refused: ``path`` is an input (a capture, the config, the scene, the session file), holds one,
+    or lies inside an input folder (``--out CAP/frames``); it holds a capture (capture.yaml); or,
+    with ``overwrite``, it exists and is not a polarshape result (:func:`is_result_folder`) — only
+    a previous result (or an empty folder) is ever replaced.
+    """
     path = path.resolve()
-    if (path / "capture.yaml").exists():
-        return True
     for item in inputs:
         if item is None:
             continue
         p = Path(item).resolve()
+        if p.name == "capture.yaml" and p.is_file():
+            p = p.parent  # a capture given by its capture.yaml: the folder is the input
         if p == path or path in p.parents:
-            return True
-    return False
+            return f"it is or holds the input {p}"
+        if p.is_dir() and p in path.parents:
+            return f"it lies inside the input folder {p}"
+    if path.exists() and (path / "capture.yaml").exists():
+        return "it holds a capture (capture.yaml)"
+    empty = path.is_dir() and not any(path.iterdir())
+    if overwrite and path.exists() and not empty and not is_result_folder(path):
+        kind = "folder" if path.is_dir() else "file"
+        return (f"this {kind} is not a polarshape result (no params.json of format {RESULT_FORMAT}), and "
+                "--overwrite only replaces results; choose another --out or remove it yourself")
+    return None
 
 
 def plain_json(value: Any) -> Any:

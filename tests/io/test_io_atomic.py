@@ -92,8 +92,8 @@ def test_protected_folder_is_never_replaced(tmp_path: Path) -> None:
     inputs.mkdir()
     (inputs / "capture.yaml").write_text("x")
 
-    def is_capture(p: Path) -> bool:
-        return (p / "capture.yaml").exists()
+    def is_capture(p: Path) -> str | None:
+        return "it holds input data" if (p / "capture.yaml").exists() else None
 
     with (
         pytest.raises(OutputExistsError, match="holds input data"),
@@ -101,3 +101,23 @@ def test_protected_folder_is_never_replaced(tmp_path: Path) -> None:
     ):
         pass
     assert (inputs / "capture.yaml").read_text() == "x"
+
+
+def test_stale_partials_of_dead_processes_are_removed(tmp_path: Path) -> None:
+    """A run killed outright (SIGKILL) leaves .NAME.partial-PID-*; the next write to the same
+    destination removes it once PID is gone, and keeps a live process's and other names'."""
+    import os
+    import subprocess
+
+    dead = subprocess.Popen(["true"])
+    dead.wait()
+    stale = tmp_path / f".result.partial-{dead.pid}-abc"
+    live = tmp_path / f".result.partial-{os.getpid()}-def"
+    other = tmp_path / f".other.partial-{dead.pid}-ghi"
+    for folder in (stale, live, other):
+        folder.mkdir()
+        (folder / "normals.npy").write_text("half")
+    with atomic_directory(tmp_path / "result") as tmp:
+        (tmp / "a.txt").write_text("a")
+    assert not stale.exists() and live.exists() and other.exists()
+    assert (tmp_path / "result" / "a.txt").read_text() == "a"
