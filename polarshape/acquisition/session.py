@@ -48,6 +48,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 
 from polarshape.acquisition.camera import Camera, CameraError, Frame
 from polarshape.acquisition.lights import LightRig, RigLight
+from polarshape.errors import CaptureError
 from polarshape.imaging.pixels import PIXEL_FORMATS
 from polarshape.io.atomic import OutputExistsError, atomic_path, atomic_write_text
 from polarshape.io.capture import CAPTURE_FORMAT, Distortion, IntrinsicsSpec, LightSpec, MosaicSpec, Projection
@@ -144,6 +145,69 @@ def _capture_light(
     return frames, info
 
 
+#: What a resumed session must share with the frames already on disk (``frames/session.json``).
+SESSION_FILE = "session.json"
+
+
+def session_identity(rig: LightRig, *, frames_per_light: int, exposure_bracket: Sequence[float] | None,
+                     settings: Mapping[str, Any] | None = None) -> dict[str, Any]:
+    """The settings that make frames of one session comparable: the lights (direction or position,
+    intensity), frames per light, the exposure bracket, and the camera ``settings`` given (pixel
+    format, exposure, gain, ROI; None values left out)."""
+    lights = []
+    for light in rig.lights:
+        entry: dict[str, Any] = {"intensity": float(light.intensity)}
+        if light.direction is not None:
+            entry["direction"] = [round(float(c), 9) for c in light.direction]
+        else:
+            entry["position"] = [round(float(c), 9) for c in light.position]
+        lights.append(entry)
+    camera = {k: (list(v) if isinstance(v, (list, tuple)) else v) for k, v in (settings or {}).items() if v is not None}
+    bracket = None if exposure_bracket is None else [float(e) for e in exposure_bracket]
+    return {"lights": lights, "frames_per_light": int(frames_per_light), "exposure_bracket": bracket,
+            "camera": camera}
+
+
+def _identity_difference(stored: Mapping[str, Any], current: Mapping[str, Any]) -> str | None:
+    """The first field where two session identities differ, as ``field: stored → current``, or None."""
+    if len(stored.get("lights", [])) != len(current["lights"]):
+        return f"lights: {len(stored.get('lights', []))} lights on disk, {len(current['lights'])} in this session"
+    for i, (a, b) in enumerate(zip(stored["lights"], current["lights"])):
+        if a != b:
+            return f"lights[{i}]: {a} on disk, {b} in this session"
+    for key in ("frames_per_light", "exposure_bracket"):
+        if stored.get(key) != current[key]:
+            return f"capture.{key}: {stored.get(key)} on disk, {current[key]} in this session"
+    keys = sorted(set(stored.get("camera", {})) | set(current["camera"]))
+    for key in keys:
+        a, b = stored.get("camera", {}).get(key), current["camera"].get(key)
+        if a != b:
+            return f"camera.{key}: {a} on disk, {b} in this session"
+    return None
+
+
+def _check_resume(frames_dir: Path, identity: dict[str, Any], n: int) -> bool:
+    """Before a resumed session captures anything: True when frames of an earlier run are on disk.
+
+    Raises:
+        CaptureError: the earlier run's session differs (lights, ROI, pixel format, exposure, …),
+            naming the field, so that no frame of the new session is mixed with the old ones.
+    """
+    if not any(_light_done(frames_dir, i) is not None for i in range(n)):
+        return False
+    stored_path = frames_dir / SESSION_FILE
+    if not stored_path.exists():
+        logger.warning("%s holds frames without %s (an older polarshape): resuming without checking that the "
+                       "session is the same", frames_dir, SESSION_FILE)
+        return True
+    stored = json.loads(stored_path.read_text(encoding="utf-8"))
+    difference = _identity_difference(stored, identity)
+    if difference is not None:
+        raise CaptureError(f"{frames_dir}: cannot resume, the frames on disk come from another session ({difference}); "
+                           "use the same session file, or another --out (or --no-resume into an empty folder)")
+    return True
+
+
 def _frame_metadata(frames: Sequence[Frame], extra: Mapping[str, Any]) -> dict[str, Any]:
     last = frames[-1]
     return {
@@ -170,6 +234,7 @@ def run_capture_session(
     exposure_bracket: Sequence[float] | None = None,
     resume: bool = True,
     camera_info: Mapping[str, Any] | None = None,
+    settings: Mapping[str, Any] | None = None,
     saturation_limit: float = SATURATION_LIMIT,
     timeout_s: float = 5.0,
 ) -> Path:
@@ -195,6 +260,10 @@ def run_capture_session(
         resume: skip lights already on disk (otherwise existing frames are an error).
         camera_info: extra keys of capture.yaml's ``camera`` block (``projection``,
             ``intrinsics``, ``distortion``, ``model``, ``black_level``, ``mosaic``).
+        settings: the camera settings of the session (``pixel_format``, ``exposure_us``,
+            ``gain_db``, ``roi``): recorded with the frames (:func:`session_identity`, in
+            ``frames/session.json``) and, when resuming, required to match those of the frames on
+            disk, as are the lights, ``frames_per_light`` and ``exposure_bracket``.
         saturation_limit: see above.
         timeout_s: per-frame capture timeout.
 
@@ -225,7 +294,11 @@ def run_capture_session(
     if not resume and frames_dir.exists() and any(frames_dir.iterdir()):
         raise OutputExistsError(f"{frames_dir} already holds frames; pass resume=True to continue that "
                                 "session, or choose another output folder")
-    frames_dir.mkdir(parents=True, exist_ok=True)
+    identity = session_identity(rig, frames_per_light=frames_per_light, exposure_bracket=exposure_bracket,
+                                settings=settings)
+    if not (resume and _check_resume(frames_dir, identity, n)):
+        frames_dir.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(frames_dir / SESSION_FILE, json.dumps(identity, indent=1), overwrite=True)
     if callable(getattr(camera, "open", None)):
         camera.open()
 
@@ -460,5 +533,7 @@ def capture_session(
         return run_capture_session(
             camera, rig, out_dir, frames_per_light=config.capture.frames_per_light,
             exposure_bracket=config.capture.exposure_bracket, resume=resume, camera_info=info,
+            settings={"pixel_format": cam_cfg.pixel_format, "exposure_us": cam_cfg.exposure_us,
+                      "gain_db": cam_cfg.gain_db, "roi": cam_cfg.roi},
             timeout_s=config.capture.timeout_s,
         )

@@ -11,8 +11,11 @@ from polarshape.cli.errors import reports_errors
 def _cmd_capture(args: argparse.Namespace) -> int:
     from polarshape.acquisition.session import capture_session
 
+    from pathlib import Path
+
+    complete = (Path(args.out) / "capture.yaml").exists()
     path = capture_session(args.session, args.out, resume=not args.no_resume)
-    print(f"wrote {path}")
+    print(f"{path} was already complete; nothing captured" if complete else f"wrote {path}")
     return 0
 
 

@@ -79,7 +79,7 @@ def test_bracketing_interruption_and_resume(tmp_path: Path) -> None:
     with pytest.raises(KeyboardInterrupt):
         run_capture_session(cam, rig, out, frames_per_light=2, exposure_bracket=[1000, 4000, 16000])
     saved = sorted(p.name for p in (out / "frames").iterdir())
-    assert saved == ["000.json", "000.png", "001.json", "001.png", "002.json", "002.png"]
+    assert saved == ["000.json", "000.png", "001.json", "001.png", "002.json", "002.png", "session.json"]
     assert not (out / "capture.yaml").exists()
     before = {p: p.read_bytes() for p in (out / "frames").iterdir()}
 
@@ -113,6 +113,36 @@ def test_bracketing_interruption_and_resume(tmp_path: Path) -> None:
 
     # a complete capture is returned as is
     assert run_capture_session(cam, _FailingRig(cam, SPECS, fail_at=0), out) == path
+
+
+@pytest.mark.parametrize("change, field", [
+    ({"specs": [RigLight(direction=(-d[0], d[1], d[2])) for d in (s.direction for s in SPECS)]}, "lights[0]"),
+    ({"settings": {"roi": (0, 0, 32, 24)}}, "camera.roi"),
+    ({"settings": {"pixel_format": "PolarizeMono8"}}, "camera.pixel_format"),
+    ({"frames_per_light": 3}, "capture.frames_per_light"),
+])
+def test_resume_refuses_another_session_before_capturing(tmp_path: Path, change: dict, field: str) -> None:
+    """Issue 12: a resume whose lights, ROI, pixel format or capture settings differ from the frames
+    on disk is refused at the start, naming the field; nothing is captured or overwritten."""
+    from polarshape.errors import CaptureError
+
+    cam = _StubCamera()
+    out = tmp_path / "cap"
+    settings = {"pixel_format": "PolarizeMono12", "exposure_us": 1000.0, "roi": None}
+    with pytest.raises(KeyboardInterrupt):
+        run_capture_session(cam, _FailingRig(cam, SPECS, fail_at=2), out, settings=settings)
+    before = {p.name: p.read_bytes() for p in (out / "frames").iterdir()}
+    captured = len(cam.captured)
+    specs = change.get("specs", SPECS)
+    rig = _FailingRig(cam, specs)
+    with pytest.raises(CaptureError, match=field.replace("[", r"\[").replace("]", r"\]")):
+        run_capture_session(cam, rig, out, settings={**settings, **change.get("settings", {})},
+                            frames_per_light=change.get("frames_per_light", 1))
+    assert rig.switched == [] and len(cam.captured) == captured
+    assert {p.name: p.read_bytes() for p in (out / "frames").iterdir()} == before
+    # the same session resumes
+    run_capture_session(cam, _FailingRig(cam, SPECS), out, settings=settings)
+    assert (out / "capture.yaml").exists()
 
 
 def test_written_capture_loads_with_load_capture(tmp_path: Path) -> None:
