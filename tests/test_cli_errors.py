@@ -62,3 +62,21 @@ def test_decorated_handler_prints_the_message_and_returns_the_status(capsys: pyt
     with pytest.raises(KeyboardInterrupt):
         handler(KeyboardInterrupt())
     assert handler.__name__ == "handler"
+
+
+def test_ctrl_c_is_a_message_and_exit_130(monkeypatch, capsys) -> None:
+    """Ctrl-C in a command: exit status 130 and one line on stderr, no traceback."""
+    import polarshape.cli as cli
+
+    def interrupted(args):  # noqa: ANN001, ANN202
+        raise KeyboardInterrupt
+
+    parser = cli.build_parser()
+    monkeypatch.setattr(cli, "build_parser", lambda: parser)
+    parser.set_defaults(handler=interrupted)
+    for action in parser._subparsers._group_actions:  # noqa: SLF001 - argparse's own structure
+        for sub in action.choices.values():
+            sub.set_defaults(handler=interrupted)
+    assert cli.main(["demo", "--out", "x"]) == 130
+    err = capsys.readouterr().err
+    assert "interrupted" in err and "Traceback" not in err

@@ -170,10 +170,16 @@ def _exit_on_sigterm() -> Iterator[None]:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line; returns the process exit status (0 = success, 1 = refused to
-    overwrite, 2 = invalid input, 3 = a stage of ``run`` failed; see :mod:`polarshape.cli.errors`)."""
+    overwrite, 2 = invalid input, 3 = a stage of ``run`` failed, 130 = interrupted by Ctrl-C,
+    143 = by SIGTERM; see :mod:`polarshape.cli.errors`)."""
     parser = build_parser()
     args = parser.parse_args(argv)
     level = logging.WARNING - 10 * min(args.verbose, 2)
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
-    with _exit_on_sigterm():
-        return int(args.handler(args))
+    try:
+        with _exit_on_sigterm():
+            return int(args.handler(args))
+    except KeyboardInterrupt:
+        # the finally blocks have run: no half-written output is left; a message, not a traceback
+        print("error: interrupted (Ctrl-C); nothing half-written was kept", file=sys.stderr)
+        return 130
