@@ -195,10 +195,6 @@ class PerspectiveCamera:
         """(3, 3) float64 intrinsic matrix K."""
         return intrinsic_matrix(self.fx, self.fy, self.cx, self.cy)
 
-    def intrinsics(self) -> dict[str, float]:
-        """{fx, fy, cx, cy} as written to capture.yaml."""
-        return {"fx": float(self.fx), "fy": float(self.fy), "cx": float(self.cx), "cy": float(self.cy)}
-
     def rays(self, *, device: torch.device | str = "cpu", dtype: torch.dtype = torch.float64) -> tuple[Tensor, Tensor]:
         """Ray origins (all 0) and unit directions normalise(((u−cx)/fx, (v−cy)/fy, 1)): (H, W, 3) each
         (no distortion: the simulator renders an ideal pinhole)."""
