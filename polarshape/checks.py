@@ -28,9 +28,17 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from polarshape.errors import ShapeError
+from polarshape.errors import ConfigError, DeviceError, ShapeError
 
-__all__ = ["check_dtype_floating", "check_shape", "check_tensor", "format_shape", "to_numpy"]
+__all__ = [
+    "check_dtype_floating",
+    "check_finite",
+    "check_shape",
+    "check_tensor",
+    "format_shape",
+    "resolve_device",
+    "to_numpy",
+]
 
 
 def format_shape(dims: Sequence[object]) -> str:
@@ -136,3 +144,70 @@ def to_numpy(x: Any, dtype: Any = None) -> np.ndarray:
         x = x.detach().to("cpu").numpy()
     out = np.asarray(x)
     return out if dtype is None else out.astype(dtype, copy=False)
+
+
+def check_finite(x: Tensor, name: str) -> Tensor:
+    """Return ``x`` if every element is finite, else raise a ``ValueError`` naming ``name``.
+
+    One reduction and one host sync per call: check once at a public entry, not in inner loops.
+    """
+    if not bool(torch.isfinite(x).all()):
+        bad = int((~torch.isfinite(x)).sum())
+        raise ValueError(
+            f"{name} must be finite; got {bad} NaN/Inf value(s) of {x.numel()} (shape {format_shape(x.shape)})"
+        )
+    return x
+
+
+def _set_to(field: str, value: str) -> str:
+    """How a user sets ``field`` to ``value``: ``--device cpu`` on the command line, ``device: cpu`` in a file."""
+    return f"{field} {value}" if field.startswith("-") else f"{field}: {value}"
+
+
+def resolve_device(device: str | torch.device, field: str = "device") -> torch.device:
+    """The torch device named by ``device``, checked before any work starts (the one place that does).
+
+    ``auto`` is ``cuda`` when torch sees a GPU, else ``cpu``; ``cpu``, ``cuda``, ``cuda:N`` and ``mps``
+    are taken as they are once torch can use them.
+
+    Args:
+        device: ``"auto"``, ``"cpu"``, ``"cuda"``, ``"cuda:1"``, ``"mps"`` or a ``torch.device``.
+        field: where the value came from, named in the messages (``"device"``, ``"--device"``).
+
+    Raises:
+        ConfigError: not a device name (``"gpu"``) — invalid input (exit status 2).
+        DeviceError: a device this machine or this torch build cannot use (``cuda`` with a CPU-only
+            torch, no GPU, ``cuda:3`` with two GPUs) — cannot run (exit status 3).
+
+    Example:
+        >>> resolve_device("cpu")
+        device(type='cpu')
+    """
+    if isinstance(device, str) and device.strip().lower() == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        dev = torch.device(device.strip() if isinstance(device, str) else device)
+    except (RuntimeError, TypeError, ValueError):
+        dev = None
+    if dev is None or dev.type not in ("cpu", "cuda", "mps"):
+        raise ConfigError(
+            f"{field} {str(device)!r} is not a device polarshape can use; use cpu, cuda, cuda:N, mps or auto"
+        )
+    fix = f"use {_set_to(field, 'cpu')} (or auto)"
+    if dev.type == "cuda":
+        if torch.version.cuda is None and not torch.cuda.is_available():
+            raise DeviceError(f"{field} {str(device)!r} requested but torch has no CUDA (torch {torch.__version__}): {fix}")
+        if not torch.cuda.is_available():
+            raise DeviceError(
+                f"{field} {str(device)!r} requested but torch {torch.__version__} (CUDA {torch.version.cuda}) sees no "
+                f"GPU (check the driver and CUDA_VISIBLE_DEVICES): {fix}"
+            )
+        count = torch.cuda.device_count()
+        if dev.index is not None and dev.index >= count:
+            raise DeviceError(
+                f"{field} {str(device)!r} requested but torch sees {count} GPU(s) (cuda:0 to cuda:{count - 1}): "
+                f"use {_set_to(field, 'cuda:0')}, cpu or auto"
+            )
+    if dev.type == "mps" and not torch.backends.mps.is_available():
+        raise DeviceError(f"{field} {str(device)!r} requested but torch {torch.__version__} has no MPS device here: {fix}")
+    return dev

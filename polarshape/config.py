@@ -24,10 +24,10 @@ import typing
 from pathlib import Path
 from typing import Any, Literal
 
-import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator, model_validator
 
 from polarshape.errors import ConfigError
+from polarshape.io.yamlfile import load_yaml
 from polarshape.recover.options import InitialNormalsOptions, RecoveryOptions
 
 __all__ = [
@@ -44,7 +44,6 @@ __all__ = [
     "RunConfig",
     "load_run_config",
     "parse_run_config",
-    "resolve_device",
 ]
 
 #: Version string of the run-configuration format.
@@ -52,7 +51,8 @@ RUN_FORMAT = "polarshape-run/1"
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True, strict=True)
+    # allow_inf_nan=False: every float must be finite (``.inf``/``.nan`` is an error naming its key path)
+    model_config = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
 
 
 def _resolve_path(value: str | None, info: ValidationInfo) -> str | None:
@@ -257,7 +257,7 @@ def _format_error(err: dict[str, Any]) -> str:
         return f"{path}: must be a mapping{keys}; got {given!r}"
     text = f"{path}: {msg}"
     if kind.startswith(("int", "float", "bool", "string", "literal")) or kind in (
-        "greater_than", "greater_than_equal", "less_than", "less_than_equal"
+        "greater_than", "greater_than_equal", "less_than", "less_than_equal", "finite_number"
     ):
         text += f"; got {given!r}"
     return text[:600]
@@ -292,26 +292,12 @@ def load_run_config(path: str | os.PathLike[str]) -> RunConfig:
     """Read and validate a run configuration YAML file (relative paths start at its folder).
 
     Raises:
-        ConfigError: missing/unreadable file, invalid YAML, or any invalid key (see module docstring).
+        ConfigError: missing/unreadable file, invalid YAML, a key given twice, or any invalid key (see
+            module docstring).
     """
     path = Path(path)
     if not path.is_file():
         raise ConfigError(f"{path}: config file not found (see configs/default.yaml for an example)")
-    try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except yaml.YAMLError as err:
-        raise ConfigError(f"{path}: not valid YAML: {err}") from None
-    except UnicodeDecodeError as err:
-        raise ConfigError(f"{path}: not UTF-8 text: {err}") from None
+    data = load_yaml(path, error=ConfigError)
     return parse_run_config(data, str(path), base_dir=path.resolve().parent)
 
-
-def resolve_device(device: str) -> str:
-    """``auto`` → ``cuda`` when torch sees a GPU, else ``cpu``; ``cuda`` without a GPU is a ConfigError."""
-    import torch
-
-    if device == "auto":
-        return "cuda" if torch.cuda.is_available() else "cpu"
-    if device == "cuda" and not torch.cuda.is_available():
-        raise ConfigError("device: 'cuda' was requested but torch sees no CUDA device; use 'auto' or 'cpu'")
-    return device

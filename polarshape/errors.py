@@ -14,12 +14,17 @@ __all__ = [
     "CameraError",
     "CaptureError",
     "ConfigError",
+    "DeviceError",
     "ImageError",
     "LightRigError",
     "OutputExistsError",
+    "OutputPathError",
+    "OutputWriteError",
     "PipelineError",
     "PolarshapeError",
     "ShapeError",
+    "PolarshapeWarning",
+    "SuspiciousInputWarning",
 ]
 
 
@@ -27,8 +32,8 @@ class PolarshapeError(Exception):
     """Every error a user can cause (a bad file, configuration, argument or device state).
 
     The message names the cause and the fix. The command line maps it to exit status 2 (1 for
-    :class:`OutputExistsError`, 3 for :class:`PipelineError`) and prints ``error: <message>``,
-    never a traceback.
+    :class:`OutputExistsError`; 3 for :class:`PipelineError`, :class:`DeviceError` and
+    :class:`OutputWriteError`) and prints ``error: <message>``, never a traceback.
     """
 
 
@@ -63,3 +68,39 @@ class OutputExistsError(PolarshapeError, FileExistsError):
 
 class PipelineError(PolarshapeError, RuntimeError):
     """A stage cannot run with this capture and configuration; the message names the key to change."""
+
+
+class PolarshapeWarning(UserWarning):
+    """Every warning polarshape issues on purpose (``warnings.warn``): the run goes on, but the user
+    should look. The command line prints ``warning: <Kind>: <message>``; ``polarshape run`` also
+    records each one in ``params.json`` (``warnings``)."""
+
+
+class SuspiciousInputWarning(PolarshapeWarning):
+    """An input that is valid but looks wrong (two lights with one direction, 12-bit data declared
+    16-bit, ...); the message names the field, what looks wrong and what to check."""
+
+
+class DeviceError(PolarshapeError, RuntimeError):
+    """The torch device asked for cannot be used here (``cuda`` with a CPU-only torch or no GPU); the
+    message names the field and the fix (``--device cpu`` / ``device: cpu`` or ``auto``). Exit status 3."""
+
+
+class OutputWriteError(PolarshapeError, OSError):
+    """An output could not be written (no space left on the device, no permission to create the
+    folder); the message names the path, the cause and the fix. Exit status 3; nothing half-written is kept.
+
+    Attributes:
+        errno: the ``errno`` of the ``OSError`` behind it (``errno.ENOSPC``, ``errno.EACCES``, ...), or None.
+        path: the output that could not be written, or None.
+    """
+
+    def __init__(self, message: str, *, errno: int | None = None, path: str | None = None) -> None:
+        super().__init__(message)
+        self.errno = errno
+        self.path = path
+
+
+class OutputPathError(PolarshapeError, NotADirectoryError):
+    """An output path cannot be a folder: a file stands where one of its folders must be; the
+    message names that file. Exit status 2 (invalid argument)."""

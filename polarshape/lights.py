@@ -125,6 +125,40 @@ class Lights:
         lit = [light.illuminate(points)[:2] for light in self.lights]
         return torch.stack([l for l, _ in lit]), torch.stack([e for _, e in lit])
 
+    def behind(self, depth_z: float) -> list[int]:
+        """Indices of the lights that cannot light the camera's side of a surface at depth ``depth_z``
+        (metres along +z, away from the camera): point lights with z ≥ ``depth_z``, directional
+        lights pointing away from the camera (z > 0; z = 0 is grazing and allowed)."""
+        return [
+            k for k, light in enumerate(self.lights)
+            if (isinstance(light, PointLight) and light.position[2] >= depth_z)
+            or (isinstance(light, DirectionalLight) and light.direction[2] > 0)
+        ]
+
+    def coincident(self, max_angle_deg: float = 0.5, max_distance_m: float = 1e-3) -> list[tuple[int, int, float]]:
+        """Pairs of lights that light the scene from (nearly) one place: a copied entry, or a rig
+        that did not move. Directional lights closer than ``max_angle_deg``, point lights closer
+        than ``max_distance_m``; a directional and a point light are never compared.
+
+        Returns:
+            (i, j, separation) with i < j, in frame order: degrees for directional lights, metres
+            for point lights.
+        """
+        pairs: list[tuple[int, int, float]] = []
+        for i, a in enumerate(self.lights):
+            for j in range(i + 1, len(self.lights)):
+                b = self.lights[j]
+                if isinstance(a, DirectionalLight) and isinstance(b, DirectionalLight):
+                    cos = sum(x * y for x, y in zip(a.direction, b.direction))
+                    angle = math.degrees(math.acos(max(-1.0, min(1.0, cos))))
+                    if angle < max_angle_deg:
+                        pairs.append((i, j, angle))
+                elif isinstance(a, PointLight) and isinstance(b, PointLight):
+                    dist = math.dist(a.position, b.position)
+                    if dist < max_distance_m:
+                        pairs.append((i, j, dist))
+        return pairs
+
     def intensities(self) -> list[float]:
         """The K lights' intensities (directional: irradiance; point: irradiance at 1 m)."""
         return [float(light.intensity) for light in self.lights]

@@ -12,8 +12,9 @@ Steps (each timed in ``NormalsResult.timings``, each omission recorded in ``skip
    (:func:`polarshape.recover.coarse_to_fine.solve_fmbrdf`), then pixels without data filled from
    their neighbours (:func:`polarshape.recover.priors.fill_unsupported`) and, when asked, the
    smoothness prior (:func:`polarshape.recover.priors.smooth_normals`);
-   **Lambertian path** — the PS normals and albedo, rendered with
-   :func:`polarshape.brdf.baselines.lambertian_stokes`;
+   **Lambertian path** — the PS normals and albedo, pixels without data filled the same way,
+   rendered with :func:`polarshape.brdf.baselines.lambertian_stokes`; both paths mark the filled
+   pixels (``NormalsResult.filled``);
 5. **paste back** into the full super-pixel grid.
 
 :func:`recover_capture` runs :func:`polarshape.recover.preprocess.preprocess_capture` first (directional
@@ -68,7 +69,8 @@ class NormalsResult:
         history: per-iteration records (losses, parameters).
         timings: seconds per step.
         skipped: what was left out, with the reason.
-        filled: (H, W) bool mask pixels whose normal came from their neighbours (FMBRDF), or None.
+        filled: (H, W) bool mask pixels with < 3 usable observations, whose normal and albedo are
+            not their own but their neighbours' (both models; filled.png).
     """
 
     normals: Tensor
@@ -153,12 +155,26 @@ def choose_model(inputs: RecoveryInputs, ps: RobustPSResult, skipped: list[str])
     return "fmbrdf"
 
 
+def _fill(inputs: RecoveryInputs, normals: Tensor, albedo: Tensor, log: SolveLog) -> tuple[Tensor, Tensor, Tensor]:
+    """Mask pixels with < :data:`MIN_OBSERVATIONS` usable observations have no normal of their own:
+    they take their neighbours' (:func:`polarshape.recover.priors.fill_unsupported`) and are marked
+    (the returned (h, w) bool ``filled``: result.filled, filled.png), whatever the model."""
+    supported = inputs.valid.sum(0) >= MIN_OBSERVATIONS
+    normals, albedo, filled = fill_unsupported(normals, albedo, inputs.mask, supported)
+    if bool(filled.any()):
+        log.skipped.append(f"fill: {int(filled.sum())} mask pixels with < {MIN_OBSERVATIONS} usable observations "
+                           "have no normal of their own: they took their neighbours' normal and albedo (result.filled)")
+    return normals, albedo, filled
+
+
 def _lambertian_solution(inputs: RecoveryInputs, ps: RobustPSResult, log: SolveLog) -> _Solution:
-    """The intensity-only answer: PS normals and albedo; the loss is the RMS s0 residual."""
+    """The intensity-only answer: PS normals and albedo (pixels without data filled from their
+    neighbours and marked); the loss is the RMS s0 residual."""
     mask = inputs.mask
-    normals = torch.where(mask[..., None], ps.normals, torch.full_like(ps.normals, math.nan))
-    albedo = torch.where(mask, ps.albedo, torch.full_like(ps.albedo, math.nan))
-    rendered = torch.where(mask, _lambertian_stokes(inputs, ps.normals, ps.albedo), torch.zeros(()))
+    ps_normals, ps_albedo, filled = _fill(inputs, ps.normals, ps.albedo, log)
+    normals = torch.where(mask[..., None], ps_normals, torch.full_like(ps_normals, math.nan))
+    albedo = torch.where(mask, ps_albedo, torch.full_like(ps_albedo, math.nan))
+    rendered = torch.where(mask, _lambertian_stokes(inputs, ps_normals, ps_albedo), torch.zeros(()))
     residual = (rendered[:, 0] - inputs.stokes[:, 0])[inputs.valid & mask]
     rms = float(residual.pow(2).mean().sqrt()) if residual.numel() else math.nan
     n_mask = int(mask.sum())
@@ -168,7 +184,7 @@ def _lambertian_solution(inputs: RecoveryInputs, ps: RobustPSResult, log: SolveL
     }
     log.history.append({"iteration": 0, "loss": rms, "loss_name": "rms_s0_residual"})
     log.skipped += ["reflectometry: the lambertian model has no material fit", "joint refinement: lambertian model"]
-    return _Solution(normals, albedo, rendered, params)
+    return _Solution(normals, albedo, rendered, params, filled)
 
 
 def _render_fmbrdf(inputs: RecoveryInputs, state: FMBRDFState) -> Tensor:
@@ -193,12 +209,8 @@ def _fmbrdf_solution(inputs: RecoveryInputs, ps: RobustPSResult, options: Recove
         log.skipped.append("polarisation: no linear polarisation above the noise (no polariser or an unpolarised "
                            "scene): intensity-only fit")
     state, _ = solve_fmbrdf(inputs, ps.normals, options, seed=seed, progress=progress, log=log)
-    supported = inputs.valid.sum(0) >= MIN_OBSERVATIONS
-    normals, k_b, filled = fill_unsupported(state.normals, state.k_b, inputs.mask, supported)
-    if bool(filled.any()):
-        log.skipped.append(f"fill: {int(filled.sum())} mask pixels with < {MIN_OBSERVATIONS} usable observations "
-                           "took their neighbours' normal and albedo (result.filled)")
-    else:
+    normals, k_b, filled = _fill(inputs, state.normals, state.k_b, log)
+    if not bool(filled.any()):
         normals, k_b = state.normals, state.k_b
     if options.smoothness > 0:
         t0 = time.perf_counter()

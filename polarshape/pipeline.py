@@ -28,6 +28,7 @@ import logging
 import os
 import shutil
 import time
+import warnings
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -41,12 +42,12 @@ from tqdm import tqdm
 
 from polarshape import __version__
 from polarshape.cameras import Camera
-from polarshape.config import RunConfig, resolve_device
-from polarshape.errors import ConfigError, PipelineError
+from polarshape.config import RunConfig
+from polarshape.errors import CaptureError, ConfigError, PipelineError, PolarshapeWarning
 from polarshape.io.export import write_npy
 from polarshape.imaging.demosaic import stokes_from_mosaic
-from polarshape.imaging.pixels import counts_to_float
-from polarshape.checks import to_numpy
+from polarshape.imaging.pixels import counts_to_float, max_count
+from polarshape.checks import resolve_device, to_numpy
 from polarshape.io.atomic import atomic_directory, atomic_write_text
 from polarshape.io.capture import Capture, load_capture, write_capture
 from polarshape.io.results import RESULT_FORMAT, output_refusal, write_maps, write_params
@@ -172,6 +173,21 @@ def _clean_mask(mask: np.ndarray, erode_px: int, min_component_px: int) -> np.nd
     return out
 
 
+def _refuse_dark_capture(capture: Capture, threshold: float) -> None:
+    """An empty threshold mask: the capture is dark (or below its black level) — name the cause."""
+    camera = capture.spec.camera
+    full, black = max_count(camera.bit_depth), float(camera.black_level)
+    top = int(capture.frames.max()) if capture.frames.size else 0
+    if black > 0 and top <= black:
+        raise CaptureError(f"capture: every count is at or below camera.black_level {black:g} (the brightest is {top}): "
+                           f"black_level is in counts of the declared bit_depth {camera.bit_depth} (full scale {full}); "
+                           "lower it")
+    if (top - black) / (full - black) <= threshold:
+        raise CaptureError(f"capture: all frames are dark: the brightest count is {top} of full scale {full}, below "
+                           f"preprocess.mask_threshold {threshold:g} of full scale (no mask.png, so the object is where "
+                           "the frames are bright) — lights off, lens cap, exposure too short? Or add a mask.png")
+
+
 def _object_mask(capture: Capture, config: RunConfig, log: _StageLog) -> np.ndarray:
     mode = config.preprocess.mask
     if mode == "capture" and capture.mask is None:
@@ -184,6 +200,8 @@ def _object_mask(capture: Capture, config: RunConfig, log: _StageLog) -> np.ndar
         mask = _threshold_mask(capture, config.preprocess.mask_threshold)
         log.skip("preprocess", "capture mask not used (threshold mask)" if capture.mask is not None else
                  "capture has no mask.png: threshold mask on the brightest s0")
+    if not mask.any():
+        _refuse_dark_capture(capture, config.preprocess.mask_threshold)
     mask = _clean_mask(mask, config.preprocess.erode_px, config.preprocess.min_component_px)
     if not mask.any():
         raise PipelineError(
@@ -347,8 +365,19 @@ def _summary_line(out: Path, result: NormalsResult, metrics: dict[str, Any], tot
     return "; ".join(parts)
 
 
+def _capture_source(capture: Capture, config: RunConfig, work: Path, out: Path) -> str:
+    """Where the capture is: its folder, the result's ``capture/`` (not the temporary folder it is
+    written in), or what it was when it was not saved."""
+    if capture.root is None:
+        return f"{config.input.type} (not saved)"
+    root = Path(capture.root).absolute()
+    if root.is_relative_to(work):
+        return str(out / root.relative_to(work))
+    return str(root)
+
+
 def _params(config: RunConfig, capture: Capture, inputs: RecoveryInputs, result: NormalsResult, surface: Surface,
-            mesh_info: dict[str, Any], metrics: dict[str, Any], device: str) -> dict[str, Any]:
+            mesh_info: dict[str, Any], metrics: dict[str, Any], device: str, work: Path, out: Path) -> dict[str, Any]:
     """The content of params.json (format :data:`polarshape.io.results.RESULT_FORMAT`)."""
     if config.mesh.poisson and "poisson" in mesh_info:
         metrics["mesh_poisson_watertight"] = mesh_info["poisson"]["watertight"]
@@ -362,7 +391,7 @@ def _params(config: RunConfig, capture: Capture, inputs: RecoveryInputs, result:
         "metrics": metrics,
         "recovery_timings_s": {str(k): float(v) for k, v in result.timings.items()},
         "capture": {
-            "source": str(capture.root) if capture.root is not None else f"{config.input.type} (not saved)",
+            "source": _capture_source(capture, config, work, out),
             "input_type": config.input.type,
             "lights": capture.num_lights,
             "superpixels_hw": list(inputs.shape),
@@ -419,7 +448,8 @@ def run_pipeline(
         :class:`PipelineResult` (folder, one-line summary, params.json content).
 
     Raises:
-        ConfigError: no output folder, or ``device: cuda`` without a GPU.
+        ConfigError: no output folder.
+        DeviceError: ``device: cuda`` without a GPU (checked before anything is read or written).
         OutputExistsError: the folder exists and ``overwrite`` is False; or it is, holds or lies inside
             an input; or it exists and is not a polarshape result (``overwrite`` replaces results only).
         PipelineError, CaptureError, ValueError: a stage cannot run (message names the fix).
@@ -429,21 +459,40 @@ def run_pipeline(
     if target is None:
         raise ConfigError("output: no result folder; pass --out DIR or set output: in the config")
     out = Path(target).absolute()
-    device = resolve_device(config.device)
+    device = str(resolve_device(config.device, "device"))
     torch.manual_seed(config.seed)
     inputs_paths = [config.input.path, config.input.scene, config.input.session, config_path]
     log = _StageLog(config.progress)
     try:
         refusal = lambda p: output_refusal(p, inputs_paths, overwrite=overwrite)  # noqa: E731
-        with atomic_directory(out, overwrite=overwrite, protect=refusal) as work:
-            params = _run_stages(config, work, out, device, log, t_start)
+        with atomic_directory(out, overwrite=overwrite, protect=refusal) as work, _recorded_warnings() as warned:
+            params = _run_stages(config, work, out, device, log, t_start, warned)
     finally:
         log.close()
     logger.info("result written to %s (%.1f s)", out, params["timings_s"]["total"])
     return PipelineResult(out_dir=out, summary=params["summary"], params=params)
 
 
-def _run_stages(config: RunConfig, work: Path, out: Path, device: str, log: _StageLog, t_start: float) -> dict[str, Any]:
+@contextlib.contextmanager
+def _recorded_warnings() -> Iterator[list[str]]:
+    """Collect the text of every :class:`~polarshape.errors.PolarshapeWarning` issued inside, each
+    still shown as usual (params.json records them: a result says what looked wrong in its input)."""
+    warned: list[str] = []
+    with warnings.catch_warnings():
+        shown = warnings.showwarning
+
+        def record(message: Warning | str, category: type[Warning], *args: Any, **kwargs: Any) -> None:
+            if issubclass(category, PolarshapeWarning):
+                warned.append(f"{category.__name__}: {message}")
+            shown(message, category, *args, **kwargs)
+
+        warnings.simplefilter("always", PolarshapeWarning)  # once per run, not once per process
+        warnings.showwarning = record
+        yield warned
+
+
+def _run_stages(config: RunConfig, work: Path, out: Path, device: str, log: _StageLog, t_start: float,
+                warned: list[str]) -> dict[str, Any]:
     dtype = torch.float64 if config.dtype == "float64" else torch.float32
     with log.stage("input"):
         capture = acquire(config, work, device)
@@ -469,11 +518,11 @@ def _run_stages(config: RunConfig, work: Path, out: Path, device: str, log: _Sta
         metrics, error_map = evaluate(capture, result, surface, log)
         if error_map is not None:
             write_npy(error_map.astype(np.float32), work / "error_map.npy")
-    params = _params(config, capture, inputs, result, surface, mesh_info, metrics, device)
+    params = _params(config, capture, inputs, result, surface, mesh_info, metrics, device, work, out)
     params["summary"] = _summary_line(out, result, metrics, time.perf_counter() - t_start)
     with log.stage("report"):
         _report(work, config, inputs, result, params, error_map, log)
     total = time.perf_counter() - t_start
-    params.update(timings_s={**log.timings, "total": total}, skipped=log.skipped,
+    params.update(timings_s={**log.timings, "total": total}, skipped=log.skipped, warnings=list(warned),
                   summary=_summary_line(out, result, metrics, total))
     return write_params(work, params)

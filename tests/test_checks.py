@@ -1,4 +1,4 @@
-"""Tests of polarshape.checks: shape and dtype checks at the boundary."""
+"""Tests of polarshape.checks: shape, dtype and finiteness checks at the boundary, and the device check."""
 
 from __future__ import annotations
 
@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 import torch
 
-from polarshape.checks import check_dtype_floating, check_shape, check_tensor, format_shape
-from polarshape.errors import PolarshapeError, ShapeError
+from polarshape.checks import check_dtype_floating, check_finite, check_shape, check_tensor, format_shape, resolve_device
+from polarshape.cli.errors import exit_status
+from polarshape.errors import ConfigError, DeviceError, PolarshapeError, ShapeError
 
 
 @pytest.mark.parametrize(
@@ -91,3 +92,53 @@ def test_format_shape_prints_like_a_tuple() -> None:
     assert format_shape(torch.Size([4, 2])) == "(4, 2)"
     assert format_shape(["K"]) == "(K,)"
     assert format_shape(()) == "()"
+
+
+# --- resolve_device --------------------------------------------------------------------------
+
+
+def test_resolve_device_takes_cpu_and_auto() -> None:
+    assert resolve_device("cpu") == torch.device("cpu")
+    assert resolve_device(torch.device("cpu")) == torch.device("cpu")
+    assert resolve_device("auto") == torch.device("cuda" if torch.cuda.is_available() else "cpu")
+
+
+@pytest.mark.parametrize("name", ["gpu", "cuda:x", "", "meta"])
+def test_an_unknown_device_is_invalid_input_naming_the_field(name: str) -> None:
+    with pytest.raises(ConfigError, match=re.escape(f"--device {name!r} is not a device")) as info:
+        resolve_device(name, "--device")
+    assert exit_status(info.value) == 2
+
+
+def test_cuda_without_cuda_cannot_run_and_names_the_fix(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A CPU-only torch (as here, or made so): DeviceError, exit status 3, the fix in the message."""
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    monkeypatch.setattr(torch.version, "cuda", None)
+    with pytest.raises(DeviceError, match=re.escape(f"device 'cuda' requested but torch has no CUDA (torch {torch.__version__}): "
+                                                    "use device: cpu (or auto)")) as info:
+        resolve_device("cuda")
+    assert exit_status(info.value) == 3 and isinstance(info.value, RuntimeError)
+    with pytest.raises(DeviceError, match=re.escape("use --device cpu (or auto)")):
+        resolve_device("cuda:0", "--device")
+    assert resolve_device("auto") == torch.device("cpu")
+    monkeypatch.setattr(torch.version, "cuda", "12.4")  # a CUDA build on a machine without a GPU
+    with pytest.raises(DeviceError, match="sees no GPU .check the driver and CUDA_VISIBLE_DEVICES"):
+        resolve_device("cuda")
+
+
+def test_a_gpu_index_past_the_last_gpu_cannot_run(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 2)
+    assert resolve_device("cuda:1") == torch.device("cuda:1")
+    with pytest.raises(DeviceError, match=re.escape("torch sees 2 GPU(s) (cuda:0 to cuda:1)")):
+        resolve_device("cuda:2")
+
+
+# --- check_finite ----------------------------------------------------------------------------
+
+
+def test_check_finite_names_the_argument() -> None:
+    x = torch.tensor([[0.0, 0.0, 1.0], [float("nan"), 0.0, float("inf")]])
+    assert check_finite(x[:1], "normal") is not None
+    with pytest.raises(ValueError, match=re.escape("normal must be finite; got 2 NaN/Inf value(s) of 6 (shape (2, 3))")):
+        check_finite(x, "normal")

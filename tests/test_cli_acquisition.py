@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import cv2
+import numpy as np
 import pytest
 import yaml
 
@@ -39,3 +41,21 @@ def test_calibrate_lights_missing_file_is_named(tmp_path: Path, capsys: pytest.C
     missing = tmp_path / "nope.png"
     assert main(["calibrate", "lights", str(missing), "--circle", "10", "10", "5"]) == 2
     assert "nope.png" in capsys.readouterr().err
+
+
+def test_calibrate_lights_mask_sizes(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A mask at the images' size or at the super-pixel size (a capture's mask.png) is taken; any other
+    size is exit status 2 naming both sizes."""
+    yy, xx = np.mgrid[0:64, 0:64]
+    sphere = (xx - 31.5) ** 2 + (yy - 31.5) ** 2 < 24**2
+    image = np.where(sphere, 200, 0).astype(np.uint16)
+    image[20:22, 36:38] = 4000  # the highlight
+    cv2.imwrite(str(tmp_path / "a.png"), image)
+    superpixel = sphere.reshape(32, 2, 32, 2).mean(axis=(1, 3)) >= 0.5
+    cv2.imwrite(str(tmp_path / "mask.png"), superpixel.astype(np.uint8) * 255)
+    assert main(["calibrate", "lights", str(tmp_path / "a.png"), "--mask", str(tmp_path / "mask.png")]) == 0
+    assert capsys.readouterr().out.startswith("light 0: direction [")
+    cv2.imwrite(str(tmp_path / "odd.png"), np.full((40, 40), 255, dtype=np.uint8))
+    assert main(["calibrate", "lights", str(tmp_path / "a.png"), "--mask", str(tmp_path / "odd.png")]) == 2
+    err = capsys.readouterr().err
+    assert "40x40 pixels" in err and "64x64" in err and "32x32" in err and err.count("\n") == 1

@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from polarshape.config import RUN_FORMAT, ConfigError, RunConfig, load_run_config, parse_run_config, resolve_device
+from polarshape.config import RUN_FORMAT, ConfigError, RunConfig, load_run_config, parse_run_config
 
 REPO = Path(__file__).resolve().parents[1]
 SCENE = REPO / "configs" / "scenes" / "sphere.yaml"
@@ -181,12 +181,3 @@ def test_config_is_frozen_and_round_trips() -> None:
     again = RunConfig.model_validate(config.model_dump(mode="json"))
     assert again == config
 
-
-def test_resolve_device() -> None:
-    import torch
-
-    assert resolve_device("cpu") == "cpu"
-    assert resolve_device("auto") == ("cuda" if torch.cuda.is_available() else "cpu")
-    if not torch.cuda.is_available():
-        with pytest.raises(ConfigError, match="device: 'cuda'"):
-            resolve_device("cuda")

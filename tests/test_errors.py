@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import pytest
 
 from polarshape import errors
@@ -21,6 +23,9 @@ KINDS = [
     (errors.LightRigError, RuntimeError),
     (errors.OutputExistsError, FileExistsError),
     (errors.PipelineError, RuntimeError),
+    (errors.DeviceError, RuntimeError),
+    (errors.OutputWriteError, OSError),
+    (errors.OutputPathError, NotADirectoryError),
 ]
 
 
@@ -34,7 +39,18 @@ def test_every_kind_is_a_polarshape_error_and_its_builtin(kind: type[Exception],
 
 
 def test_all_lists_every_kind() -> None:
-    assert set(errors.__all__) == {k.__name__ for k, _ in KINDS} | {"PolarshapeError"}
+    assert set(errors.__all__) == {k.__name__ for k, _ in KINDS} | {"PolarshapeError"} | {
+        k.__name__ for k in WARNINGS}
+
+
+WARNINGS = [errors.PolarshapeWarning, errors.SuspiciousInputWarning]
+
+
+@pytest.mark.parametrize("kind", WARNINGS)
+def test_every_warning_is_a_polarshape_warning_and_a_user_warning(kind: type[Warning]) -> None:
+    with pytest.warns(errors.PolarshapeWarning, match="look"):
+        warnings.warn(kind("look"), stacklevel=1)
+    assert issubclass(kind, UserWarning) and not issubclass(kind, errors.PolarshapeError)
 
 
 def test_old_import_paths_give_the_same_classes() -> None:

@@ -296,3 +296,34 @@ def test_camera_without_polariser_gives_an_intensity_only_fit(monkeypatch: pytes
     assert count > 1000 and err <= 1.0 and 3 * err <= err_l, (err, err_l, result.params)
     assert result.params["k_s"] > 0 and abs(result.params["alpha"] - 0.3) <= 0.1, result.params
     assert bool(torch.isfinite(result.normals[result.mask]).all())
+
+
+def _matte_sphere(n: int) -> Capture:
+    """configs/scenes/sphere.yaml with a Lambertian material (unpolarised) at n × n super-pixels."""
+    d = yaml.safe_load((REPO / "configs" / "scenes" / "sphere.yaml").read_text())
+    d["camera"]["width"] = d["camera"]["height"] = 2 * n
+    d["camera"]["pixel_size_m"] = 1e-4 * 256 / (2 * n)
+    d["objects"][0]["material"] = {"model": "lambertian", "k_d": 0.5}
+    return SimulatedCamera(parse_scene_config(d), seed=0).render_capture(progress=False)
+
+
+@pytest.mark.parametrize("model", ["lambertian", pytest.param("fmbrdf", marks=pytest.mark.slow), "auto"])
+def test_pixels_with_too_few_observations_are_marked_filled(model: str) -> None:
+    """Mask pixels lit in only 2 lights have no normal of their own: every model (``auto`` choosing
+    Lambertian on a matte sphere) takes their neighbours' and marks them in result.filled
+    (filled.png, params.json filled_pixels) instead of inventing one silently."""
+    capture = _matte_sphere(16) if model == "auto" else _simulate("sphere", 16, 0.3)
+    frames = capture.frames.copy()
+    frames[2:, 12:18, 12:18] = 0  # a 3 × 3 super-pixel patch in the middle: dark in every light but 0, 1
+    two_lit = Capture(spec=capture.spec, frames=frames, mask=capture.mask)
+    valid = preprocess_capture(two_lit).valid
+    unsupported = torch.from_numpy(capture.mask) & (valid.sum(0) < 3)
+    assert int(unsupported.sum()) >= 9, int(unsupported.sum())
+    result = _recover(two_lit, model=model, max_outer_iterations=1, fit_kappa=False, coarse_to_fine=False)
+    assert result.model == ("fmbrdf" if model == "fmbrdf" else "lambertian"), result.skipped
+    assert result.filled is not None, result.model
+    assert torch.equal(result.filled, unsupported), result.model
+    assert any(s.startswith("fill:") for s in result.skipped), result.skipped
+    assert bool(torch.isfinite(result.normals[unsupported]).all())
+    n = result.normals[6:9, 6:9].reshape(-1, 3)
+    assert bool((n[:, 2] < -0.8).all()), n  # the patch took its neighbours' normals (near the sphere's centre)

@@ -114,7 +114,8 @@ def test_end_to_end_simulated_capture(simulated_run: tuple[Path, dict]) -> None:
     exr, _ = read_exr(out / "normals.exr")
     assert np.allclose(exr[mask], normals[mask])
     assert read_image(out / "mask.png").astype(bool).sum() == mask.sum()
-    assert not (out / "filled.png").exists() and params["capture"]["filled_pixels"] is None  # lambertian: no fill
+    filled = read_image(out / "filled.png").astype(bool)  # lambertian too: pixels without data are marked
+    assert filled.shape == mask.shape and params["capture"]["filled_pixels"] == int(filled.sum()) < 0.05 * mask.sum()
 
     # ground truth: normals and scale/offset-aligned depth
     metrics = params["metrics"]
@@ -154,6 +155,8 @@ def test_end_to_end_simulated_capture(simulated_run: tuple[Path, dict]) -> None:
         assert (out / "report" / f"{name}.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
         assert f"report/{name}.png" in html
     assert yaml.safe_load((out / "config.yaml").read_text())["input"]["type"] == "simulated"
+    assert params["capture"]["source"] == str(out / "capture")  # not the temporary .partial-* folder
+    assert params["warnings"] == []
     assert not list(out.parent.glob(".result.partial-*"))
 
 
@@ -301,9 +304,11 @@ def test_mask_modes(capture_config: Path, small_capture: Path, tmp_path: Path) -
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="checks the error without a GPU")
-def test_cuda_without_gpu_is_a_config_error(capture_config: Path, tmp_path: Path) -> None:
+def test_cuda_without_gpu_is_a_device_error(capture_config: Path, tmp_path: Path) -> None:
+    from polarshape.errors import DeviceError
+
     config = _load(capture_config).model_copy(update={"device": "cuda"})
-    with pytest.raises(ConfigError, match="device"):
+    with pytest.raises(DeviceError, match="device 'cuda' requested but torch"):
         run_pipeline(config, tmp_path / "res")
 
 

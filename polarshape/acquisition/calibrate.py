@@ -34,11 +34,12 @@ from typing import Any
 import cv2
 import numpy as np
 import yaml
+from pydantic import Field
 from scipy import ndimage
 
 from polarshape.cameras import intrinsic_matrix, normalised_coordinates
-from polarshape.io.atomic import atomic_write_text
-from polarshape.io.capture import IntrinsicsSpec
+from polarshape.errors import CaptureError, ImageError
+from polarshape.io.capture import IntrinsicsSpec, edit_capture_yaml, set_light_directions
 
 logger = logging.getLogger(__name__)
 
@@ -74,7 +75,7 @@ class Intrinsics(IntrinsicsSpec):
     """
 
     distortion: tuple[float, ...] = ()
-    rms_px: float = float("nan")
+    rms_px: float = Field(float("nan"), allow_inf_nan=True)  # NaN is meaningful here (capture.yaml floats are finite)
     n_views: int = 0
 
     @classmethod
@@ -428,6 +429,20 @@ def _read_image(path: str | Path) -> np.ndarray:
     return image
 
 
+def _mask_at_raw_size(mask: np.ndarray, raw_hw: tuple[int, int], path: str | Path | None) -> np.ndarray:
+    """The (H, W) sphere mask at the images' size: as it is, or upsampled (nearest) from the
+    super-pixel size (H/2, W/2) of a capture's mask.png; any other size is an ImageError."""
+    h, w = raw_hw
+    if mask.shape == (h, w):
+        return mask
+    if mask.shape == (h // 2, w // 2) and h % 2 == 0 and w % 2 == 0:
+        return np.repeat(np.repeat(mask, 2, axis=0), 2, axis=1)  # each super-pixel covers its 2x2 block
+    raise ImageError(
+        f"sphere mask {path}: {mask.shape[1]}x{mask.shape[0]} pixels; it must be the images' size {w}x{h} or the "
+        f"super-pixel size {w // 2}x{h // 2} (half of it, like a capture's mask.png)"
+    )
+
+
 def calibrate_lights_from_files(
     image_paths: Sequence[str | Path],
     *,
@@ -441,7 +456,8 @@ def calibrate_lights_from_files(
 
     Args:
         image_paths: one image per light, in light order.
-        mask_path: sphere mask image (non-zero = sphere), at the images' resolution; or
+        mask_path: sphere mask image (non-zero = sphere), at the images' resolution or at half of it
+            (super-pixels, like a capture's own mask.png: upsampled, nearest); or
         circle: ``(cu, cv, radius)`` in the images' pixels (orthographic).
         intrinsics: None (orthographic) or pinhole intrinsics in the images' (raw) pixels.
         mosaic: images are raw polarisation mosaics: average 2x2 blocks first.
@@ -456,6 +472,8 @@ def calibrate_lights_from_files(
     mask = None if mask_path is None else _read_image(mask_path)
     if mask is not None and mask.ndim == 3:
         mask = mask[..., 0]
+    if mask is not None and images:
+        mask = _mask_at_raw_size(mask, images[0].shape[:2], mask_path)
     if mosaic:
         images = [mosaic_to_superpixel_intensity(i) for i in images]
         if mask is not None:
@@ -515,36 +533,26 @@ def update_capture_yaml(
     Returns:
         The path of the capture.yaml written.
     """
-    path = Path(path)
-    if path.is_dir():
-        path = path / "capture.yaml"
-    try:
-        doc = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except OSError as exc:
-        raise ValueError(f"cannot read {path}: {exc}") from exc
-    if not isinstance(doc, dict) or not isinstance(doc.get("lights"), list) or not isinstance(doc.get("camera"), dict):
-        raise ValueError(f"{path} is not a capture.yaml (needs a 'camera' mapping and a 'lights' list)")
+    dirs = None
     if lights is not None:
         dirs = np.asarray(lights, dtype=np.float64)
         if dirs.ndim != 2 or dirs.shape[1] != 3:
             raise ValueError(f"lights must have shape (K, 3); got {dirs.shape}")
-        if dirs.shape[0] != len(doc["lights"]):
-            raise ValueError(f"{dirs.shape[0]} light directions for the {len(doc['lights'])} lights of {path}: "
-                             "give one per light, in the order of capture.yaml")
         norms = np.linalg.norm(dirs, axis=1, keepdims=True)
         if not np.all(norms > 0) or not np.all(np.isfinite(dirs)):
             raise ValueError("light directions must be finite and non-zero")
-        for entry, direction in zip(doc["lights"], dirs / norms, strict=True):
-            entry.pop("position", None)
-            entry["direction"] = [float(x) for x in direction]
-    if intrinsics is not None:
-        intr = intrinsics if isinstance(intrinsics, Intrinsics) else Intrinsics.from_mapping(intrinsics)
-        doc["camera"]["intrinsics"] = intr.to_capture_dict()
-        doc["camera"]["projection"] = "perspective"
-        if intr.distortion:
-            doc["camera"]["distortion"] = [float(x) for x in intr.distortion]
-    if distortion is not None:
-        doc["camera"]["distortion"] = [float(x) for x in distortion]
-    atomic_write_text(path, yaml.safe_dump(doc, sort_keys=False), overwrite=True)
-    logger.info("updated %s", path)
-    return path
+        dirs = dirs / norms
+
+    def edit(doc: dict) -> None:
+        if dirs is not None:
+            set_light_directions(doc, dirs)
+        if intrinsics is not None:
+            intr = intrinsics if isinstance(intrinsics, Intrinsics) else Intrinsics.from_mapping(intrinsics)
+            doc["camera"]["intrinsics"] = intr.to_capture_dict()
+            doc["camera"]["projection"] = "perspective"
+            if intr.distortion:
+                doc["camera"]["distortion"] = [float(x) for x in intr.distortion]
+        if distortion is not None:
+            doc["camera"]["distortion"] = [float(x) for x in distortion]
+
+    return edit_capture_yaml(path, edit, check_before=False)

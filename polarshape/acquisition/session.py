@@ -48,10 +48,11 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 
 from polarshape.acquisition.camera import Camera, CameraError, Frame
 from polarshape.acquisition.lights import LightRig, RigLight
-from polarshape.errors import CaptureError
+from polarshape.errors import CaptureError, ConfigError
 from polarshape.imaging.pixels import PIXEL_FORMATS
 from polarshape.io.atomic import OutputExistsError, atomic_path, atomic_write_text
 from polarshape.io.capture import CAPTURE_FORMAT, Distortion, IntrinsicsSpec, LightSpec, MosaicSpec, Projection
+from polarshape.io.yamlfile import load_yaml
 
 logger = logging.getLogger(__name__)
 
@@ -353,7 +354,7 @@ def _capture_document(camera: Camera, rig: LightRig, metadata: list[dict[str, An
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
 
 class CameraSection(_Strict):
@@ -443,12 +444,7 @@ class SessionConfig(_Strict):
 def load_session_config(path: str | Path) -> SessionConfig:
     """Read and validate a session YAML file; errors name the file and the field."""
     path = Path(path)
-    try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except OSError as exc:
-        raise ValueError(f"cannot read the session file {path}: {exc}") from exc
-    except yaml.YAMLError as exc:
-        raise ValueError(f"{path} is not valid YAML: {exc}") from exc
+    data = load_yaml(path, error=ConfigError)  # unreadable, not YAML, or a key given twice
     try:
         return SessionConfig.model_validate(data)
     except ValidationError as exc:

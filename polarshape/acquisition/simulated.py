@@ -26,7 +26,7 @@ from tqdm import tqdm
 from polarshape.acquisition.camera import CameraError, Frame
 from polarshape.brdf.geometry import sensor_plane_basis, sensor_plane_stokes
 from polarshape.imaging.pixels import PIXEL_FORMATS, bit_depth_of
-from polarshape.checks import to_numpy
+from polarshape.checks import resolve_device, to_numpy
 from polarshape.io.atomic import OutputExistsError
 from polarshape.io.capture import CAPTURE_FORMAT, Capture, parse_capture_spec, write_capture
 from polarshape.lights import light_to_dict
@@ -48,14 +48,16 @@ class SimulatedCamera:
 
     Args:
         scene: a validated scene, or the path of a scene YAML file.
-        device: torch device for rendering and noise (open3d ray casting always runs on the CPU).
+        device: torch device for rendering and noise (open3d ray casting always runs on the CPU);
+            ``"auto"`` = cuda when available. A device torch cannot use raises
+            :class:`~polarshape.errors.DeviceError` (see :func:`polarshape.checks.resolve_device`).
         seed: noise seed; None = ``scene.sensor.seed``. The n-th frame after :meth:`open` depends
             only on the seed, the settings and the lights chosen, so runs are bit-exact repeatable.
     """
 
     def __init__(self, scene: SceneConfig | str | Path, *, device: torch.device | str = "cpu", seed: int | None = None) -> None:
         self.config = scene if isinstance(scene, SceneConfig) else load_scene_config(scene)
-        self.device = torch.device(device)
+        self.device = resolve_device(device)  # a missing GPU is an error here, before any work
         self.dtype = torch.float64 if self.config.render.dtype == "float64" else torch.float32
         self.seed = self.config.sensor.seed if seed is None else int(seed)
         self.sensor = self.config.sensor.to_model()

@@ -29,7 +29,7 @@ from polarshape.brdf.distribution import d_normalisation
 from polarshape.brdf.geometry import angle_between, dot, safe_normalize, shading_geometry, stokes_frame
 from polarshape.brdf.smith import SmithTable, build_smith_table, projected_area_exact
 from polarshape.brdf.surface import surface_stokes
-from polarshape.checks import check_dtype_floating, check_shape, check_tensor
+from polarshape.checks import check_dtype_floating, check_finite, check_shape, check_tensor
 from polarshape.errors import ShapeError
 
 Param = Union[float, Tensor]
@@ -130,6 +130,7 @@ def _check_vectors(normal: Tensor, light: Tensor, view: Tensor) -> tuple[Tensor,
         check_tensor(v, name)
         check_shape(v, ["*", "3"], name)
         check_dtype_floating(v, name)
+        check_finite(v, name)  # one reduction per argument, here at the entry, never in the evaluators
     dtype = torch.promote_types(torch.promote_types(normal.dtype, light.dtype), view.dtype)
     try:
         n, l, v = torch.broadcast_tensors(normal.to(dtype), light.to(dtype), view.to(dtype))
@@ -160,7 +161,8 @@ def fmbrdf_stokes(
         normal: (..., 3) surface normal N, camera frame (OpenCV: x right, y down, z forward).
         light: (..., 3) unit direction from the surface point to the light, L.
         view: (..., 3) unit direction from the surface point to the camera, V.
-            The three broadcast together; they are normalised defensively.
+            The three broadcast together; they are normalised defensively. Each must be finite
+            (a NaN or Inf raises ``ValueError`` naming it).
         ior: μ ≥ 1. k_s: surface albedo ≥ 0. k_b: body albedo ≥ 0 (may be per pixel, broadcastable
             to (...)). alpha: roughness α > 0 (rad). beta: shape β. kappa: correlation κ ≥ 0.
             Fast evaluator: μ, α, β, κ one value each (one table per material); k_s, k_b any

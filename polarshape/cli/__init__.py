@@ -6,11 +6,12 @@ Sub-commands (one ``_cmd_<name>(args) -> int`` each, registered in :func:`build_
   (capture-format.md) with the simulated camera, ground truth included.
 * ``demo --out DIR [--overwrite]`` — the forward-model demo (a sphere under one light).
 * ``inspect FRAME`` — DoLP and AoLP of one raw mosaic.
-* ``run``, ``capture``, ``calibrate`` — see :mod:`polarshape.cli.run` and :mod:`polarshape.cli.acquisition`.
+* ``run``, ``capture``, ``calibrate``, ``import`` — see :mod:`polarshape.cli.run`,
+  :mod:`polarshape.cli.acquisition` and :mod:`polarshape.cli.importing`.
 
 Handlers do not catch errors: :func:`polarshape.cli.errors.reports_errors` turns every error a user
-can cause into ``error: <message>`` and the exit status (0 success, 1 refused to overwrite, 2 invalid
-input, 3 a stage of ``run`` failed).
+can cause into ``error: <message>`` and the exit status (0 success, 1 refused, 2 invalid input, 3
+cannot run, 130 Ctrl-C, 143 SIGTERM; the table ends every ``--help``).
 """
 
 from __future__ import annotations
@@ -20,12 +21,15 @@ import contextlib
 import logging
 import signal
 import sys
+import textwrap
 import threading
+import warnings
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 from polarshape import __version__
-from polarshape.cli.errors import reports_errors
+from polarshape.cli.errors import EXIT_STATUS_HELP, reports_errors
+from polarshape.errors import PolarshapeWarning
 
 logger = logging.getLogger(__name__)
 
@@ -34,9 +38,11 @@ logger = logging.getLogger(__name__)
 def _cmd_simulate(args: argparse.Namespace) -> int:
     from polarshape.imaging.pixels import PIXEL_FORMATS
     from polarshape.acquisition.simulated import SimulatedCamera
+    from polarshape.checks import resolve_device
     from polarshape.errors import CameraError, OutputExistsError
     from polarshape.scene.config import load_scene_config
 
+    device = resolve_device(args.device, "--device")  # before anything is loaded or rendered
     out = Path(args.out)
     # Refused before the scene is even loaded, with the command-line fix in the message.
     if out.exists() and not args.overwrite:
@@ -44,7 +50,7 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     config = load_scene_config(args.scene)
     if args.pixel_format is not None and args.pixel_format not in PIXEL_FORMATS:
         raise CameraError(f"--pixel-format {args.pixel_format!r} is not one of {sorted(PIXEL_FORMATS)}")
-    with SimulatedCamera(config, device=args.device, seed=args.seed) as camera:
+    with SimulatedCamera(config, device=device, seed=args.seed) as camera:
         camera.configure(exposure_us=args.exposure_us, gain_db=args.gain_db, pixel_format=args.pixel_format)
         capture = camera.render_capture(out, overwrite=args.overwrite, progress=not args.quiet)
     mask = capture.mask
@@ -76,6 +82,11 @@ def _cmd_inspect(args: argparse.Namespace) -> int:
     from polarshape.inspect_frame import frame_stats
 
     labels = args.layout or [90, 45, 135, 0]
+    if sorted(label % 180 for label in labels) != [0, 45, 90, 135]:
+        raise ValueError(
+            f"--layout {' '.join(str(v) for v in labels)}: must hold each of 0, 45, 90, 135 once (top-left, top-right, "
+            "bottom-left, bottom-right; the IMX250MZR is 90 45 135 0)"
+        )
     layout = MosaicLayout.from_maker([labels[:2], labels[2:]], args.angles)
     st = frame_stats(args.frame, bit_depth=args.bit_depth, black_level=args.black_level, layout=layout, roi=args.roi)
     print(
@@ -85,8 +96,30 @@ def _cmd_inspect(args: argparse.Namespace) -> int:
     return 0
 
 
+class _HelpFormatter(argparse.HelpFormatter):
+    """argparse's formatter, except that an indented line of a description or epilog is kept as it
+    is: the exit-status table keeps its rows (argparse would run them into one paragraph)."""
+
+    def _fill_text(self, text: str, width: int, indent: str) -> str:
+        return "\n".join(
+            indent + line if line.startswith(" ") else textwrap.fill(" ".join(line.split()), width,
+                                                                     initial_indent=indent, subsequent_indent=indent)
+            for line in text.splitlines()
+        )
+
+
+def _with_exit_status_help(parser: argparse.ArgumentParser) -> None:
+    """End ``parser``'s help, and every sub-command's, with the exit-status table."""
+    parser.epilog = EXIT_STATUS_HELP
+    parser.formatter_class = _HelpFormatter
+    for action in parser._actions:  # noqa: SLF001 - argparse keeps its sub-parsers there
+        if isinstance(action, argparse._SubParsersAction):  # noqa: SLF001
+            for sub in action.choices.values():
+                _with_exit_status_help(sub)
+
+
 def build_parser() -> argparse.ArgumentParser:
-    """The argument parser with every sub-command."""
+    """The argument parser with every sub-command (each ``--help`` ends with the exit-status table)."""
     parser = argparse.ArgumentParser(
         prog="polarshape",
         description="Shape and reflectance from polarisation images. Start with: polarshape run configs/default.yaml",
@@ -146,6 +179,10 @@ def build_parser() -> argparse.ArgumentParser:
     from polarshape.cli.acquisition import add_parsers as add_acquisition_parsers
 
     add_acquisition_parsers(sub)
+    from polarshape.cli.importing import add_parsers as add_importing_parsers
+
+    add_importing_parsers(sub)
+    _with_exit_status_help(parser)
     return parser
 
 
@@ -168,16 +205,33 @@ def _exit_on_sigterm() -> Iterator[None]:
         signal.signal(signal.SIGTERM, previous)
 
 
+@contextlib.contextmanager
+def _warnings_as_messages() -> Iterator[None]:
+    """While the command runs, a :class:`~polarshape.errors.PolarshapeWarning` is printed as one line,
+    ``warning: <Kind>: <message>`` on stderr (not Python's ``file:line:`` form); other warnings as usual."""
+    with warnings.catch_warnings():
+        shown = warnings.showwarning
+
+        def show(message: Warning | str, category: type[Warning], *args: object, **kwargs: object) -> None:
+            if issubclass(category, PolarshapeWarning):
+                print(f"warning: {category.__name__}: {message}", file=sys.stderr)
+            else:
+                shown(message, category, *args, **kwargs)  # type: ignore[arg-type]
+
+        warnings.showwarning = show
+        yield
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    """Run the command line; returns the process exit status (0 = success, 1 = refused to
-    overwrite, 2 = invalid input, 3 = a stage of ``run`` failed, 130 = interrupted by Ctrl-C,
-    143 = by SIGTERM; see :mod:`polarshape.cli.errors`)."""
+    """Run the command line; returns the process exit status (0 = success, 1 = refused, 2 = invalid
+    input, 3 = cannot run (a stage failed, the disk is full or not writable, no CUDA), 130 =
+    interrupted by Ctrl-C, 143 = by SIGTERM; see :mod:`polarshape.cli.errors`)."""
     parser = build_parser()
     args = parser.parse_args(argv)
     level = logging.WARNING - 10 * min(args.verbose, 2)
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
     try:
-        with _exit_on_sigterm():
+        with _exit_on_sigterm(), _warnings_as_messages():
             return int(args.handler(args))
     except KeyboardInterrupt:
         # the finally blocks have run: no half-written output is left; a message, not a traceback

@@ -2,7 +2,8 @@
 
 Registered on the main parser by :func:`add_parsers`. Exit status (see :mod:`polarshape.cli.errors`):
 0 success, 1 refused to write over an existing folder or an input, 2 invalid configuration or input,
-3 a stage failed (a PipelineError, or a builtin ValueError/OSError raised by a stage).
+3 cannot run (a PipelineError, a builtin ValueError/OSError raised by a stage, no CUDA, a full or
+read-only disk), 130 Ctrl-C, 143 SIGTERM.
 """
 
 from __future__ import annotations
@@ -15,9 +16,12 @@ from polarshape.cli.errors import reports_errors
 
 @reports_errors(builtin_status=3)
 def _cmd_run(args: argparse.Namespace) -> int:
+    from polarshape.checks import resolve_device
     from polarshape.config import load_run_config
     from polarshape.pipeline import run_pipeline
 
+    if args.device is not None:
+        resolve_device(args.device, "--device")  # no CUDA: said before the configuration is even read
     config = load_run_config(args.config)
     updates: dict[str, Any] = {}
     if args.device is not None:

@@ -73,17 +73,25 @@ def _check_black_level(black_level: float, bit_depth: int) -> float:
     return float(black_level)
 
 
-def _counts_as_int64(raw: np.ndarray | Tensor, name: str = "raw") -> Tensor:
-    """Integer counts (any integer dtype, numpy or torch) as an int64 tensor on the input's device."""
+def _check_integer_counts(raw: object, name: str = "raw") -> None:
+    """Raise TypeError unless ``raw`` is a numpy array or torch tensor of an integer dtype."""
     if isinstance(raw, np.ndarray):
         if not np.issubdtype(raw.dtype, np.integer):
             raise TypeError(f"{name} must hold integer sensor counts (uint8/uint16); got dtype {raw.dtype}")
-        return torch.from_numpy(raw.astype(np.int64, copy=False))
+        return
     if isinstance(raw, Tensor):
         if raw.is_floating_point() or raw.is_complex() or raw.dtype == torch.bool:
             raise TypeError(f"{name} must hold integer sensor counts (uint8/uint16); got dtype {raw.dtype}")
-        return raw.to(torch.int64)
+        return
     raise TypeError(f"{name} must be a numpy array or torch tensor of sensor counts; got {type(raw).__name__}")
+
+
+def _counts_as_int64(raw: np.ndarray | Tensor, name: str = "raw") -> Tensor:
+    """Integer counts (any integer dtype, numpy or torch) as an int64 tensor on the input's device."""
+    _check_integer_counts(raw, name)
+    if isinstance(raw, np.ndarray):
+        return torch.from_numpy(raw.astype(np.int64, copy=False))
+    return raw.to(torch.int64)
 
 
 def counts_to_float(
@@ -105,7 +113,9 @@ def counts_to_float(
 
     Returns:
         (*) ``(raw - black_level) / (2**bit_depth - 1 - black_level)``: 1 at full scale. Counts
-        below the black level give small negative values (kept, so noise stays unbiased).
+        below the black level give small negative values (kept, so noise stays unbiased). Equal to
+        the float64 result rounded to ``dtype``; float32 is computed in float32 when that is exact
+        (a black level in 1/256 counts), so the memory is one array of the result (no int64 copy).
 
     Raises:
         ValueError: bad bit depth or black level, or a count above ``2**bit_depth - 1`` (the data
@@ -113,19 +123,29 @@ def counts_to_float(
     """
     bit_depth = check_bit_depth(bit_depth)
     black = _check_black_level(black_level, bit_depth)
-    counts = _counts_as_int64(raw)
+    _check_integer_counts(raw)
+    if not dtype.is_floating_point:
+        raise TypeError(f"dtype must be a floating-point torch dtype; got {dtype}")
     top = max_count(bit_depth)
-    if counts.numel():
-        lo, hi = int(counts.min()), int(counts.max())
+    # float32 gives the float64 result rounded once when counts - black and top - black are exact in
+    # float32 (black a multiple of 1/256: < 24 significant bits) and the division is IEEE: the float64
+    # quotient is then never within its own rounding of a float32 midpoint. Else float64 first.
+    exact32 = dtype == torch.float32 and (black * 256.0).is_integer()
+    work = torch.float32 if exact32 else torch.float64
+    if isinstance(raw, np.ndarray):  # no int64 copy: counts of up to 16 bits are exact in float32
+        x = torch.from_numpy(raw.astype(np.float32 if exact32 else np.float64))
+        x = x if device is None else x.to(device)
+    else:
+        x = raw.to(device=raw.device if device is None else device, dtype=torch.float64 if raw.element_size() > 2 else work)
+    if x.numel():
+        lo, hi = int(x.min()), int(x.max())
         if lo < 0 or hi > top:
             raise ValueError(
                 f"raw counts span [{lo}, {hi}] but a {bit_depth}-bit pixel holds [0, {top}]: check bit_depth "
                 f"(if the data are high-bit aligned in 16 bits, shift right by {16 - bit_depth})"
             )
-    if not dtype.is_floating_point:
-        raise TypeError(f"dtype must be a floating-point torch dtype; got {dtype}")
-    x = counts.to(device=device if device is not None else counts.device, dtype=torch.float64)
-    return ((x - black) / (top - black)).to(dtype)
+    x = x.to(work).sub_(black).div_(top - black)  # (*) in place: one array of the working dtype
+    return x.to(dtype)
 
 
 def float_to_counts(x: np.ndarray | Tensor, bit_depth: int, black_level: float = 0) -> np.ndarray:

@@ -7,11 +7,20 @@ temporary name beside the destination, ``.NAME.partial-PID-XXXX``, and renamed o
 interrupted process removes it on the way out (Ctrl-C, and SIGTERM through the command line's
 handler), and a process killed outright (SIGKILL) leaves one that the next write to the same
 destination removes, once its process ``PID`` is gone.
+
+Errors name the path and the cause, and nothing half-written is kept: a file where a folder must
+be is :class:`~polarshape.errors.OutputPathError` (exit status 2); no permission, a read-only file
+system or a full disk while writing is :class:`~polarshape.errors.OutputWriteError` (exit status 3).
+
+Permissions follow the umask, as for any file a program creates (``tempfile`` would make the
+temporary names 0600 and 0700, private to their owner): a file is ``0o666 & ~umask``, a folder
+``0o777 & ~umask`` (0644 and 0755 with the usual umask 022).
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import logging
 import os
 import re
@@ -20,9 +29,75 @@ import tempfile
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
-from polarshape.errors import OutputExistsError
+from polarshape.errors import OutputExistsError, OutputPathError, OutputWriteError
 
 logger = logging.getLogger(__name__)
+
+
+def current_umask() -> int:
+    """The process umask (e.g. ``0o022``).
+
+    Read from ``/proc/self/status`` where Linux shows it, which changes nothing; elsewhere POSIX can
+    only read it by setting it, so it is set to a private ``0o077`` and restored at once (a file
+    another thread creates in between is then private rather than too open).
+    """
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("Umask:"):
+                return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    old = os.umask(0o077)
+    os.umask(old)
+    return old
+
+
+def _write_error(exc: OSError, path: Path, detail: str = "") -> OutputWriteError | None:
+    """The :class:`OutputWriteError` for ``exc`` raised while creating or writing ``path`` (``detail``:
+    the file inside a folder being written), or None if ``exc`` is not about where we write."""
+    if exc.errno == errno.ENOSPC:
+        message = f"no space left on device while writing {path}{detail}: free space or choose another --out"
+    elif exc.errno == errno.EDQUOT:
+        message = f"disk quota exceeded while writing {path}{detail}: free space or choose another --out"
+    elif exc.errno in (errno.EACCES, errno.EPERM):
+        message = f"cannot create {path}{detail}: permission denied; choose another --out (a folder you may write in)"
+    elif exc.errno == errno.EROFS:
+        message = f"cannot create {path}{detail}: read-only file system; choose another --out"
+    else:
+        return None
+    return OutputWriteError(message, errno=exc.errno, path=str(path))
+
+
+def _inside(exc: OSError, folder: Path) -> str | None:
+    """The file of ``exc`` relative to ``folder`` if it lies there (written by us), else None."""
+    name = getattr(exc, "path", None) or exc.filename
+    if name is None:
+        return None
+    try:
+        return str(Path(os.fsdecode(name)).absolute().relative_to(folder.absolute()))
+    except ValueError:
+        return None
+
+
+def _make_folder(folder: Path, target: Path) -> None:
+    """``mkdir -p folder`` (to write ``target`` in), failing with a message that names the file in
+    the way or the cause."""
+    for above in (folder, *folder.parents):
+        if above.is_dir():
+            break
+        if above.is_symlink() and not above.exists():
+            raise OutputPathError(f"{above} is a broken symbolic link, not a folder, so {target} cannot be created "
+                                  "there; remove the link or choose another output path")
+        if above.exists():
+            raise OutputPathError(f"{above} is a file, not a folder, so {target} cannot be created there; "
+                                  "choose another output path")
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        error = _write_error(exc, folder)
+        if error is None:
+            raise
+        raise error from exc
 
 
 def _check_destination(path: Path, overwrite: bool) -> None:
@@ -46,12 +121,27 @@ def atomic_path(path: str | os.PathLike[str], *, overwrite: bool = False) -> Ite
     """
     path = Path(path)
     _check_destination(path, overwrite)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=path.parent)
-    os.close(fd)
+    _make_folder(path.parent, path)
+    try:
+        fd, tmp_name = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=path.parent)
+    except OSError as exc:
+        error = _write_error(exc, path)
+        if error is None:
+            raise
+        raise error from exc
     tmp = Path(tmp_name)
     try:
-        yield tmp
+        os.fchmod(fd, 0o666 & ~current_umask())  # mkstemp makes it 0600
+        os.close(fd)
+        try:
+            yield tmp
+        except OSError as exc:
+            # a full disk whoever reports it; a refusal only when it is about the file we write
+            ours = exc.errno in (errno.ENOSPC, errno.EDQUOT) or _inside(exc, tmp.parent) is not None
+            error = _write_error(exc, path) if ours and not isinstance(exc, OutputWriteError) else None
+            if error is None:
+                raise
+            raise error from exc
         if not tmp.exists():
             raise OSError(f"the writer removed its temporary file; nothing was written to {path}")
         _check_destination(path, overwrite)
@@ -124,11 +214,29 @@ def atomic_directory(
     if reason:
         raise OutputExistsError(f"{path}: {reason}; refusing to write a result there")
     _check_destination(path, overwrite)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    _make_folder(path.parent, path)
     remove_stale_partials(path)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.partial-{os.getpid()}-", dir=path.parent))
     try:
-        yield tmp
+        tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.partial-{os.getpid()}-", dir=path.parent))
+    except OSError as exc:
+        error = _write_error(exc, path)
+        if error is None:
+            raise
+        raise error from exc
+    try:
+        os.chmod(tmp, 0o777 & ~current_umask())  # mkdtemp makes it 0700
+        try:
+            yield tmp
+        except OSError as exc:
+            # named after the folder the user asked for, not the hidden one being assembled
+            inside = _inside(exc, tmp)
+            if inside is None and isinstance(exc, OutputWriteError) and exc.path is not None:
+                inside = _inside(OSError(None, None, exc.path), tmp)
+            ours = exc.errno in (errno.ENOSPC, errno.EDQUOT) or inside is not None
+            error = _write_error(exc, path, f" ({inside})" if inside and inside != "." else "") if ours else None
+            if error is None:
+                raise
+            raise error from exc
         _check_destination(path, overwrite)
         if path.exists():
             old = path.with_name(f".{path.name}.old-{os.getpid()}")

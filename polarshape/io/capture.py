@@ -20,6 +20,7 @@ import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
+from collections.abc import Callable
 from typing import Annotated, Any, Literal
 
 import numpy as np
@@ -31,6 +32,7 @@ from polarshape.imaging.mosaic import CHANNEL_ANGLES_DEG, MosaicLayout
 from polarshape.imaging.pixels import BIT_DEPTHS, max_count, reduce_mask_to_superpixels
 from polarshape.io.atomic import atomic_directory, atomic_write_text
 from polarshape.io.images import IMAGE_SUFFIXES, ImageError, read_image, write_image
+from polarshape.io.yamlfile import load_yaml
 from polarshape.lights import Light, Lights, light_from_dict
 
 logger = logging.getLogger(__name__)
@@ -47,7 +49,9 @@ __all__ = [
     "LightSpec",
     "MosaicSpec",
     "Projection",
+    "edit_capture_yaml",
     "load_capture",
+    "set_light_directions",
     "write_capture",
 ]
 
@@ -76,7 +80,9 @@ Distortion = Annotated[tuple[float, ...], AfterValidator(_check_distortion)]
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    # allow_inf_nan=False: every float of capture.yaml (and of the scene/session entries built on these
+    # models) must be finite; ``.inf`` or ``.nan`` is an error naming its key
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class IntrinsicsSpec(_Strict):
@@ -163,11 +169,11 @@ class LightSpec(_Strict):
             raise ValueError(f"must be finite; got {list(v)}")
         if not any(v):
             raise ValueError("must be a non-zero vector toward the light")
-        if not v[2] < 0:
+        if v[2] > 0:  # z = 0 is a grazing light: it still lights the object's sides
             raise ValueError(
-                f"z = {v[2]:.6g} must be < 0: the direction points from the object TO the light, in the camera frame "
-                "(x right, y down, +z into the scene), so a light on the camera side has z < 0; z >= 0 puts it "
-                "behind the object. Flip the sign if your convention has +z toward the camera"
+                f"z = {v[2]:.6g} must be < 0, or 0 for a grazing light: the direction points from the object TO the "
+                "light, in the camera frame (x right, y down, +z into the scene), so a light on the camera side has "
+                "z < 0; z > 0 puts it behind the object. Flip the sign if your convention has +z toward the camera"
             )
         return v
 
@@ -249,7 +255,8 @@ def _format_validation_error(source: str, err: ValidationError) -> str:
             hint = " (required field: add it)"
         elif e["type"] == "literal_error" and loc == "format":
             hint = f" (this polarshape reads {CAPTURE_FORMAT!r})"
-        lines.append(f"  - {loc or '(top level)'}: {msg}{hint}; got {e.get('input')!r}"[:600])
+        got = "" if "; got " in msg or e["type"] == "missing" else f"; got {e.get('input')!r}"  # once
+        lines.append(f"  - {loc or '(top level)'}: {msg}{hint}{got}"[:600])
     return "\n".join(lines)
 
 
@@ -382,12 +389,65 @@ def _read_yaml(path: Path) -> Any:
             f"{path}: not found; a capture folder must hold capture.yaml (format, camera, lights) — see the capture "
             "format in the README"
         )
+    return load_yaml(path, error=CaptureError)  # not YAML, not UTF-8, or a key given twice
+
+
+def edit_capture_yaml(path: str | os.PathLike[str], edit: Callable[[dict[str, Any]], None], *,
+                      check_before: bool = True) -> Path:
+    """Change a capture.yaml in place, atomically: read it, apply ``edit`` to the parsed mapping,
+    validate the result and write it; a refused edit leaves the file as it was.
+
+    Args:
+        path: the capture.yaml, or the capture folder holding it.
+        edit: changes the mapping in place (may raise to refuse).
+        check_before: refuse a file that is not a valid capture.yaml before editing it; when False,
+            a file that was valid must still be valid after the edit (one being written step by
+            step, e.g. by calibration, may stay incomplete).
+
+    Returns:
+        The path of the capture.yaml written.
+
+    Raises:
+        CaptureError: not found, not YAML, invalid before (``check_before``) or after the edit.
+    """
+    path = Path(path)
+    if path.is_dir():
+        path = path / CAPTURE_YAML
+    doc = _read_yaml(path)
+    if not isinstance(doc, dict) or not isinstance(doc.get("lights"), list) or not isinstance(doc.get("camera"), dict):
+        raise CaptureError(f"{path} is not a capture.yaml (needs a 'camera' mapping and a 'lights' list)")
+    valid = True
     try:
-        return yaml.safe_load(path.read_text(encoding="utf-8"))
-    except yaml.YAMLError as err:
-        raise CaptureError(f"{path}: not valid YAML: {err}") from None
-    except UnicodeDecodeError as err:
-        raise CaptureError(f"{path}: not UTF-8 text: {err}") from None
+        parse_capture_spec(doc, str(path))
+    except CaptureError:
+        if check_before:
+            raise
+        valid = False
+    edit(doc)
+    if valid:
+        parse_capture_spec(doc, str(path))
+    atomic_write_text(path, yaml.safe_dump(doc, sort_keys=False, default_flow_style=None), overwrite=True)
+    logger.info("updated %s", path)
+    return path
+
+
+def set_light_directions(doc: dict[str, Any], directions: np.ndarray) -> None:
+    """Give each ``lights`` entry of a capture.yaml mapping its row of ``directions`` (K, 3) (unit,
+    camera frame, surface → light); a ``position`` is dropped (the entry becomes a distant light),
+    ``intensity`` and ``frame`` are kept.
+
+    Raises:
+        CaptureError: not one direction per entry.
+    """
+    dirs = np.asarray(directions, dtype=np.float64)
+    if dirs.shape != (len(doc["lights"]), 3):
+        raise CaptureError(f"{dirs.shape[0] if dirs.ndim else 0} light directions for the {len(doc['lights'])} "
+                           "lights of capture.yaml: give one per light, in the order of capture.yaml")
+    for entry, direction in zip(doc["lights"], dirs, strict=True):
+        if "position" in entry:
+            logger.info("the point light of frame %s becomes a distant light", entry.get("frame"))
+        entry.pop("position", None)
+        entry["direction"] = [float(c) for c in direction]
 
 
 def _read_frame(root: Path, k: int, light: CaptureLightSpec, bit_depth: int) -> np.ndarray:

@@ -32,6 +32,10 @@ class RecoveryInputs:
         mask: (H, W) bool object mask.
         lights: (K, H, W, 3) unit directions surface → light, camera frame.
         irradiance: (K, H, W) irradiance E ≥ 0 at normal incidence (relative units).
+            Under directional lights both are the same at every pixel, and preprocessing returns
+            them as zero-stride views (``expand`` of (K, 1, 1, 3) and (K, 1, 1)): they index,
+            slice and broadcast like full tensors but take no memory; read-only (``.clone()``
+            before writing into them).
         view: (H, W, 3) unit directions surface → camera.
         noise_std: estimated σ of s0 from quantisation and read noise, fraction of full scale.
         has_polarisation: False when the linear Stokes components hold no signal above the noise
@@ -101,9 +105,15 @@ def _pool(x: Tensor, h2: int, w2: int) -> Tensor:
     return F.avg_pool2d(x[:, : 2 * h2, : 2 * w2].unsqueeze(0), 2)[0]
 
 
+def _same_at_every_pixel(x: Tensor, *dims: int) -> bool:
+    """Whether ``x`` is a zero-stride view along ``dims`` (``expand``): one value for every pixel."""
+    return all(x.stride(d) == 0 or x.shape[d] == 1 for d in dims)
+
+
 def downsample_inputs(inputs: RecoveryInputs) -> RecoveryInputs:
     """Half resolution: 2×2 means of Stokes; a pixel is in the mask when all four are; an observation
-    is valid when all four are; directions are averaged and renormalised."""
+    is valid when all four are; directions are averaged and renormalised (zero-stride lights and
+    irradiance, the same at every pixel, stay zero-stride views)."""
     h, w = inputs.shape
     h2, w2 = h // 2, w // 2
     k = inputs.num_lights
@@ -114,10 +124,16 @@ def downsample_inputs(inputs: RecoveryInputs) -> RecoveryInputs:
     sat = F.max_pool2d(inputs.saturated[:, : 2 * h2, : 2 * w2].to(dt).unsqueeze(1), 2).squeeze(1) > 0
     view = _pool(inputs.view.permute(2, 0, 1), h2, w2).permute(1, 2, 0)
     view = view / view.norm(dim=-1, keepdim=True)
-    lights = _pool(inputs.lights.permute(0, 3, 1, 2).reshape(k * 3, h, w), h2, w2).reshape(k, 3, h2, w2)
-    lights = lights.permute(0, 2, 3, 1)
-    lights = lights / lights.norm(dim=-1, keepdim=True)
-    irradiance = _pool(inputs.irradiance, h2, w2)
+    if _same_at_every_pixel(inputs.lights, 1, 2):  # directional lights: their mean is themselves
+        lights = inputs.lights[:, :h2, :w2]
+    else:
+        lights = _pool(inputs.lights.permute(0, 3, 1, 2).reshape(k * 3, h, w), h2, w2).reshape(k, 3, h2, w2)
+        lights = lights.permute(0, 2, 3, 1)
+        lights = lights / lights.norm(dim=-1, keepdim=True)
+    if _same_at_every_pixel(inputs.irradiance, 1, 2):
+        irradiance = inputs.irradiance[:, :h2, :w2]
+    else:
+        irradiance = _pool(inputs.irradiance, h2, w2)
     return RecoveryInputs(stokes, valid & mask, sat, mask, lights, irradiance, view, inputs.noise_std / 2,
                           inputs.has_polarisation, inputs.offset)
 

@@ -12,7 +12,8 @@ __all__ = ["InitialNormalsOptions", "RecoveryOptions"]
 
 
 class _Options(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True, strict=True)
+    # allow_inf_nan=False: ``noise_std: .inf`` is a validation error naming the key, not a failure later
+    model_config = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
 
 
 class InitialNormalsOptions(_Options):

@@ -22,8 +22,13 @@ is taken (``sample_at``) and how (``demosaic``):
 - ``mask`` (H, W) bool object mask (the capture's mask, or every pixel lit in ≥ 3 observations).
 - ``lights`` (K, H, W, 3) unit directions surface → light, camera frame, and ``irradiance``
   (K, H, W), from :meth:`polarshape.lights.Lights.illuminate` at each pixel's surface point:
-  directional lights ignore where the point is; point lights (1/r² fall-off) need the points,
+  directional lights ignore where the point is (L and E are then zero-stride ``expand`` views of
+  (K, 1, 1, 3) and (K, 1, 1): no memory per pixel); point lights (1/r² fall-off) need the points,
   unknown before recovery, so :func:`preprocess_capture` takes ``points`` (H, W, 3).
+
+Memory: the frames are converted and demosaiced one light at a time, so beyond the outputs
+preprocessing holds one frame's float64 intermediates (~0.35 GB at 2448 × 2048) and a few (K, H, W)
+float64 maps.
 - ``view`` (H, W, 3) unit directions surface → camera
   (:meth:`polarshape.cameras.PerspectiveCamera.pixel_view_directions` of the super-pixel camera).
 """
@@ -44,6 +49,7 @@ from polarshape.imaging.demosaic import stokes_from_mosaic
 from polarshape.imaging.mosaic import MosaicLayout, split_mosaic
 from polarshape.imaging.pixels import counts_to_float, max_count, reduce_mask_to_superpixels
 from polarshape.io.capture import Capture
+from polarshape.recover.diagnose import check_observations
 from polarshape.recover.observations import RecoveryInputs
 
 logger = logging.getLogger(__name__)
@@ -90,15 +96,14 @@ def superpixel_stokes(mosaic: Tensor, layout: MosaicLayout, *, demosaic: str = "
     return full[..., site[0]::2, site[1]::2]
 
 
-def _to_pixel_frames(stokes: Tensor, view: Tensor) -> Tensor:
-    """Invert :func:`polarshape.brdf.geometry.sensor_plane_stokes`: sensor-plane angles → per-pixel frames.
+def _pixel_frame_basis(view: Tensor) -> Tensor:
+    """(H, W, 2, 2) float64 basis that inverts :func:`polarshape.brdf.geometry.sensor_plane_stokes`
+    (sensor-plane angles → per-pixel frames) when passed to it as ``basis``.
 
     The forward map sends a frame direction (cos φ, sin φ) to M (cos φ, sin φ) (then normalises);
     the inverse is the same construction with M⁻¹ (per pixel 2×2).
     """
-    basis = sensor_plane_basis(view.to(torch.float64))  # (H, W, 2, 2)
-    inverse = torch.linalg.inv(basis)
-    return sensor_plane_stokes(stokes.to(torch.float64), basis=inverse).to(stokes.dtype)
+    return torch.linalg.inv(sensor_plane_basis(view.to(torch.float64)))
 
 
 def preprocess_capture(
@@ -138,47 +143,65 @@ def preprocess_capture(
     h, w = h2 // 2, w2 // 2
     bit_depth = capture.bit_depth
     black = capture.spec.camera.black_level
-    mosaic = counts_to_float(frames, bit_depth, black, dtype=torch.float64)  # (K, 2H, 2W)
-    stokes = superpixel_stokes(mosaic, capture.layout, demosaic=demosaic, sample_at=sample_at)  # (K, 3, H, W)
-    sites = split_mosaic(mosaic, capture.layout)  # (K, 4, H, W) at 0°, 45°, 90°, 135°
     camera = capture_camera(capture, sample_at)
     view = camera.pixel_view_directions()  # (H, W, 3) float64
-    if camera.projection == "perspective":  # the sensor-plane angles are the per-pixel frames' when orthographic
-        stokes = _to_pixel_frames(stokes, view)
+    # the sensor-plane angles are the per-pixel frames' when orthographic
+    to_frames = _pixel_frame_basis(view) if camera.projection == "perspective" else None  # (H, W, 2, 2)
+    lights, irradiance = _pixel_lights(capture, points, (h, w), dtype=dtype, device=device)
 
-    saturated = _saturated(frames, bit_depth, saturation_margin, demosaic)  # (K, H, W)
-    dark = sites.mean(1) * 2 < dark_threshold  # (K, H, W): the block's own s0 = ½ Σ of its four sites
+    # One light at a time: the float64 mosaic and full-resolution Stokes of one frame only (all K of
+    # them at once are ~1.4 GB at 2448 × 2048); per light only (H, W) results are kept.
+    stokes = torch.empty((k, 3, h, w), dtype=torch.float64)
+    dark = torch.empty((k, h, w), dtype=torch.bool)
+    saturated = torch.empty((k, h, w), dtype=torch.bool)
+    redundancy = torch.empty((k, h, w), dtype=torch.float64)  # the four-site check d (polarisation signal)
+    scaled = torch.empty((k, h, w), dtype=torch.float64)  # d / √(s0 + c) (mixed blocks)
+    for i in range(k):
+        mosaic = counts_to_float(frames[i], bit_depth, black, dtype=torch.float64)  # (2H, 2W)
+        s = superpixel_stokes(mosaic, capture.layout, demosaic=demosaic, sample_at=sample_at)  # (3, H, W)
+        stokes[i] = s if to_frames is None else sensor_plane_stokes(s, basis=to_frames)
+        sites = split_mosaic(mosaic, capture.layout)  # (4, H, W) at 0°, 45°, 90°, 135°
+        dark[i] = sites.mean(-3) * 2 < dark_threshold  # the block's own s0 = ½ Σ of its four sites
+        redundancy[i] = _site_redundancy(sites)
+        scaled[i] = _scaled_redundancy(sites)
+        saturated[i] = _saturated(frames[i], bit_depth, saturation_margin, demosaic)
+        del mosaic, s, sites
     mask = _mask(capture, ~dark & ~saturated, (h, w))
-    mixed = mixed_superpixels(sites, ~dark & ~saturated & mask.unsqueeze(0), n_sigma=mixed_sigma)
+    mixed = _mixed_from_scaled(scaled, ~dark & ~saturated & mask.unsqueeze(0), n_sigma=mixed_sigma)
+    del scaled
     valid = ~dark & ~saturated & ~mixed & mask.unsqueeze(0)
-    lights, irradiance = _pixel_lights(capture, points, (h, w))
     # σ of s0 from quantisation (1 count / √12 per site, ½Σ of 4 sites) plus a read-noise floor.
     step = 1.0 / (max_count(bit_depth) - black)
     noise_std = float(step / np.sqrt(12.0))
-    has_pol = _has_polarisation(stokes, sites, valid, step)
+    has_pol = _has_polarisation(stokes, redundancy, valid, step)
+    del redundancy
     out = RecoveryInputs(
         stokes=stokes.to(device=device, dtype=dtype),
         valid=valid.to(device),
         saturated=saturated.to(device),
         mask=mask.to(device),
-        lights=lights.to(device=device, dtype=dtype),
-        irradiance=irradiance.to(device=device, dtype=dtype),
+        lights=lights,
+        irradiance=irradiance,
         view=view.to(device=device, dtype=dtype),
         noise_std=noise_std,
         has_polarisation=has_pol,
     )
+    del stokes
     logger.debug("preprocess: K=%d, %dx%d super-pixels, %d in mask, %d valid observations", k, h, w, int(mask.sum()), int(valid.sum()))
+    check_observations(capture, out, dark=dark, saturated=saturated, dark_threshold=dark_threshold, saturation_margin=saturation_margin, points=points)
     return out
 
 
 def _saturated(frames: np.ndarray, bit_depth: int, margin: int, demosaic: str) -> Tensor:
-    """(K, H, W) bool observations with a site at the top count (less ``margin``)."""
+    """(*, H, W) bool observations of frames (*, 2H, 2W) with a site at the top count (less ``margin``)."""
     # a 16-bit format carrying a 12-bit ADC (the IMX250MZR's PolarizeMono16) tops out at 4095·16 =
     # 65520, not 65535: the last 12-bit step counts as saturated
     top = (max_count(bit_depth) if bit_depth < 16 else 65520) - int(margin)
-    saturated = reduce_mask_to_superpixels(torch.from_numpy(frames.astype(np.int64) >= top), "any")  # (K, H, W)
+    saturated = reduce_mask_to_superpixels(torch.from_numpy(frames.astype(np.int64) >= top), "any")  # (*, H, W)
     if demosaic == "bilinear":  # interpolation reaches one block further: so does a clipped site
-        saturated = F.max_pool2d(saturated.to(torch.float32).unsqueeze(1), 3, stride=1, padding=1).squeeze(1) > 0
+        lead, hw = saturated.shape[:-2], saturated.shape[-2:]
+        grown = F.max_pool2d(saturated.to(torch.float32).reshape(-1, 1, *hw), 3, stride=1, padding=1)
+        saturated = grown.reshape(*lead, *hw) > 0
     return saturated
 
 
@@ -194,37 +217,60 @@ def _mask(capture: Capture, usable: Tensor, shape: tuple[int, int]) -> Tensor:
     return mask
 
 
-def _has_polarisation(stokes: Tensor, sites: Tensor, valid: Tensor, step: float) -> bool:
-    """Whether s1, s2 (K, 3, H, W) hold a signal: above the quantisation ``step``, and coherent
-    beyond the four-site noise (:func:`polarisation_signal`)."""
-    lin = stokes[:, 1:].abs()[valid.unsqueeze(1).expand(-1, 2, -1, -1)]
-    if not (lin.numel() and float(lin.max()) > 4 * step):
+def _has_polarisation(stokes: Tensor, redundancy: Tensor, valid: Tensor, step: float) -> bool:
+    """Whether s1, s2 of ``stokes`` (K, 3, H, W) hold a signal: above the quantisation ``step``, and
+    coherent beyond the four-site noise (:func:`polarisation_signal`; ``redundancy`` (K, H, W) its d).
+    One light at a time (no (K, 2, H, W) temporaries)."""
+    zero = stokes.new_zeros(())
+    top = max(float(torch.where(valid[i], stokes[i, 1:].abs(), zero).amax()) for i in range(stokes.shape[0]))
+    if not top > 4 * step:  # (|s1|, |s2| ≥ 0: 0 without valid observations)
         return False
-    signal = polarisation_signal(stokes[:, 1:], sites, valid)
+    num, den = 0.0, 0.0
+    for i in range(stokes.shape[0]):
+        n_i, d_i = _pair_sums(stokes[i, 1:], redundancy[i].to(torch.float64) ** 2, valid[i])
+        num, den = num + n_i, den + d_i
+    signal = _signal_ratio(num, den)
     logger.debug("preprocess: polarisation signal %.3g (threshold %.2g)", signal, POLARISATION_SIGNAL_MIN)
     return signal >= POLARISATION_SIGNAL_MIN
 
 
-def _pixel_lights(capture: Capture, points: np.ndarray | None, shape: tuple[int, int]) -> tuple[Tensor, Tensor]:
-    """L (K, H, W, 3) and E (K, H, W), float64, of the capture's lights at the surface ``points``."""
+def _pixel_lights(capture: Capture, points: np.ndarray | None, shape: tuple[int, int], *, dtype: torch.dtype,
+                  device: torch.device | str) -> tuple[Tensor, Tensor]:
+    """L (K, H, W, 3) and E (K, H, W) of the capture's lights at the surface ``points``, in ``dtype``.
+
+    Directional lights only: the same L and E at every pixel, returned as zero-stride views
+    (``expand``) of (K, 1, 1, 3) and (K, 1, 1) tensors — no (K, H, W, 3) array is made.
+    """
     lights = capture.lights()
-    if points is None:
-        if lights.has_point_lights:
-            raise ValueError(
-                "capture.yaml has point lights (position): pass points=(H, W, 3) surface points (metres, "
-                "camera frame; e.g. from a depth estimate) to preprocess_capture, or calibrate directional lights"
-            )
-        points = np.zeros((*shape, 3))  # directional lights do not depend on where the surface is
-    pts = np.asarray(points, dtype=np.float64)
-    if pts.shape != (*shape, 3):
-        raise ValueError(f"points must have shape (H, W, 3) = {(*shape, 3)}; got {pts.shape}")
-    return lights.illuminate(torch.from_numpy(pts))
+    if points is None and lights.has_point_lights:
+        raise ValueError(
+            "capture.yaml has point lights (position): pass points=(H, W, 3) surface points (metres, "
+            "camera frame; e.g. from a depth estimate) to preprocess_capture, or calibrate directional lights"
+        )
+    if points is not None:
+        pts = np.asarray(points, dtype=np.float64)
+        if pts.shape != (*shape, 3):
+            raise ValueError(f"points must have shape (H, W, 3) = {(*shape, 3)}; got {pts.shape}")
+    if not lights.has_point_lights:  # directional lights do not depend on where the surface is
+        l_dir, e_dir = lights.illuminate(torch.zeros(1, 1, 3, dtype=torch.float64))  # (K, 1, 1, 3), (K, 1, 1)
+        l_dir, e_dir = l_dir.to(device=device, dtype=dtype), e_dir.to(device=device, dtype=dtype)
+        k = l_dir.shape[0]
+        return l_dir.expand(k, *shape, 3), e_dir.expand(k, *shape)
+    l_pix, e_pix = lights.illuminate(torch.from_numpy(pts))
+    return l_pix.to(device=device, dtype=dtype), e_pix.to(device=device, dtype=dtype)
 
 
 def _site_redundancy(sites: Tensor) -> Tensor:
-    """(K, H, W) d = (I0 + I90) − (I45 + I135) of site intensities (K, 4, H, W) at 0°, 45°, 90°, 135°:
+    """(*, H, W) d = (I0 + I90) − (I45 + I135) of site intensities (*, 4, H, W) at 0°, 45°, 90°, 135°:
     both sums are s0, so d is noise plus whatever differs between the four sites (an edge)."""
-    return (sites[:, 0] + sites[:, 2]) - (sites[:, 1] + sites[:, 3])
+    i0, i45, i90, i135 = sites.unbind(-3)
+    return (i0 + i90) - (i45 + i135)
+
+
+def _scaled_redundancy(sites: Tensor) -> Tensor:
+    """(*, H, W) d / √(s0 + c) of sites (*, 4, H, W), c = 10⁻³ (see :func:`mixed_superpixels`)."""
+    s0 = 0.5 * sites.sum(-3)
+    return _site_redundancy(sites) / torch.sqrt(s0.clamp_min(0.0) + 1e-3)
 
 
 #: :func:`polarisation_signal` at or above this: the capture is polarised. Measured (12-bit, shot and
@@ -253,7 +299,12 @@ def polarisation_signal(linear: Tensor, sites: Tensor, valid: Tensor) -> float:
     Returns:
         The ratio (≥ 0 in practice; inf for noise-free polarised data, 0 without valid pairs).
     """
-    d2 = _site_redundancy(sites).to(torch.float64) ** 2
+    return _signal_ratio(*_pair_sums(linear, _site_redundancy(sites).to(torch.float64) ** 2, valid))
+
+
+def _pair_sums(linear: Tensor, d2: Tensor, valid: Tensor) -> tuple[float, float]:
+    """Numerator and denominator of :func:`polarisation_signal`: linear (*, 2, H, W), d² (*, H, W),
+    valid (*, H, W); sums over any leading dimensions (one light at a time adds up to all K)."""
     lin = linear.to(torch.float64)
     num, den = 0.0, 0.0
     for a, b, va, vb, da, db in (
@@ -261,8 +312,12 @@ def polarisation_signal(linear: Tensor, sites: Tensor, valid: Tensor) -> float:
         (lin[..., :-2, :], lin[..., 2:, :], valid[..., :-2, :], valid[..., 2:, :], d2[..., :-2, :], d2[..., 2:, :]),
     ):
         pair = va & vb
-        num += float((a * b).sum(1)[pair].sum())
+        num += float((a * b).sum(-3)[pair].sum())
         den += float((0.5 * (da + db))[pair].sum())
+    return num, den
+
+
+def _signal_ratio(num: float, den: float) -> float:
     if den <= 0:
         return math.inf if num > 0 else 0.0
     return max(num, 0.0) / den
@@ -286,10 +341,13 @@ def mixed_superpixels(sites: Tensor, usable: Tensor, *, n_sigma: float | None = 
     Returns:
         (K, H, W) bool, True for mixed observations.
     """
+    return _mixed_from_scaled(_scaled_redundancy(sites), usable, n_sigma=n_sigma)
+
+
+def _mixed_from_scaled(d: Tensor, usable: Tensor, *, n_sigma: float | None) -> Tensor:
+    """:func:`mixed_superpixels` from d / √(s0 + c) (K, H, W) (:func:`_scaled_redundancy`)."""
     if n_sigma is None:
         return torch.zeros_like(usable)
-    s0 = 0.5 * sites.sum(1)
-    d = _site_redundancy(sites) / torch.sqrt(s0.clamp_min(0.0) + 1e-3)
     v = d[usable]
     if v.numel() < 16:
         return torch.zeros_like(usable)

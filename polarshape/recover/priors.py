@@ -134,14 +134,16 @@ def fill_unsupported(normals: Tensor, k_b: Tensor, pixels: Tensor, supported: Te
     most lights, or every block straddling a texture edge) has no normal of its own: measured on a
     checker-textured sphere, such pixels kept 60–80° errors. They are filled from the outside in:
     each round, an unfilled pixel with known 8-neighbours takes their normalised mean normal and
-    mean albedo. Pixels of a component with no supported pixel keep their values.
+    mean albedo. Pixels of a component with no supported pixel keep their values (no neighbour has
+    a normal to give) and are marked all the same: no unsupported pixel passes for measured.
 
     Args:
         normals: (H, W, 3), k_b: (H, W) the fit's results.
         pixels: (H, W) bool mask; supported: (H, W) bool pixels with enough observations.
 
     Returns:
-        normals, k_b (copies) and the (H, W) bool mask of filled pixels.
+        normals, k_b (copies) and the (H, W) bool mask of filled pixels: every unsupported mask
+        pixel (``pixels & ~supported``), filled from its neighbours where any component pixel has data.
     """
     known = pixels & supported
     todo = pixels & ~supported
@@ -162,4 +164,8 @@ def fill_unsupported(normals: Tensor, k_b: Tensor, pixels: Tensor, supported: Te
         filled = filled | new
     out_n = torch.where(filled.unsqueeze(-1), n, normals)
     out_a = torch.where(filled, a, k_b)
-    return out_n, out_a, filled
+    unreachable = todo & ~filled
+    if bool(unreachable.any()):
+        logger.info("fill: %d mask pixels without data in components without data keep the fit's values (marked filled)",
+                    int(unreachable.sum()))
+    return out_n, out_a, todo

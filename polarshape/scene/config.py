@@ -13,14 +13,15 @@ from dataclasses import fields
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
-import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 from pydantic.dataclasses import dataclass as pydantic_dataclass
 
 from polarshape.brdf.params import FMBRDFParams
 from polarshape.cameras import Camera, OrthographicCamera, PerspectiveCamera
+from polarshape.errors import ConfigError
 from polarshape.imaging.pixels import PIXEL_FORMATS
 from polarshape.io.capture import IntrinsicsSpec, LightSpec, MosaicSpec, Projection
+from polarshape.io.yamlfile import load_yaml
 from polarshape.lights import DirectionalLight, Light
 from polarshape.scene.geometry import BlobShape, MeshShape, PlaneShape, Shape, SphereShape, TorusShape
 from polarshape.scene.materials import BaekMaterial, FMBRDFMaterial, LambertianMaterial, Material
@@ -34,7 +35,8 @@ Vec3 = tuple[float, float, float]
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    # allow_inf_nan=False: every float of a scene file must be finite (``.inf`` is an error naming its key)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 def _resolve(path: str, base_dir: Path | None) -> Path:
@@ -92,7 +94,7 @@ class CameraConfig(_Strict):
 # --- sensor -----------------------------------------------------------------------------------
 
 
-@pydantic_dataclass(frozen=True, config=ConfigDict(extra="forbid"))
+@pydantic_dataclass(frozen=True, config=ConfigDict(extra="forbid", allow_inf_nan=False))
 class SensorConfig(SensorModel):
     """``sensor:``: the fields, defaults and checks of :class:`polarshape.scene.sensor.SensorModel`,
     plus the noise seed."""
@@ -177,7 +179,7 @@ ShapeConfig = Annotated[SphereConfig | PlaneConfig | BlobConfig | TorusConfig | 
 # --- materials and textures -------------------------------------------------------------------
 
 
-@pydantic_dataclass(config=ConfigDict(extra="forbid"))
+@pydantic_dataclass(config=ConfigDict(extra="forbid", allow_inf_nan=False))
 class FMBRDFConfig(FMBRDFParams):
     """``material: {model: fmbrdf, ...}``: the fields and defaults of
     :class:`~polarshape.brdf.FMBRDFParams`, checked against spec §2's ranges."""
@@ -296,6 +298,25 @@ class SceneConfig(_Strict):
     #: folder relative paths are resolved against (set by :func:`load_scene_config`)
     base_dir: Path | None = Field(None, exclude=True)
 
+    @model_validator(mode="after")
+    def _point_lights_in_front(self) -> SceneConfig:
+        """A point light at or beyond the nearest object's centre (z forward) lights its far side."""
+        centres = [(getattr(o.shape, "center", None) or getattr(o.shape, "point", None), j)
+                   for j, o in enumerate(self.objects)]  # meshes: no centre before loading
+        known = [(float(c[2]), j) for c, j in centres if c is not None]
+        if not known:
+            return self
+        nearest, j = min(known)
+        behind = [f"lights[{k}].position z = {light.position[2]:g} m" for k, light in enumerate(self.lights)
+                  if light.position is not None and light.position[2] >= nearest]
+        if behind:
+            raise ValueError(
+                f"{', '.join(behind)} is at or beyond the centre of the nearest object (objects[{j}], z = {nearest:g} m): "
+                "behind the object seen from the camera: z is forward, away from the camera (camera frame: x right, "
+                "y down); give the light a smaller z, between the camera (z = 0) and the object"
+            )
+        return self
+
     def build_scene(self) -> Scene:
         """Camera model, shapes (meshes are loaded and tessellated here), materials, lights."""
         objects = tuple(obj.to_object(self.base_dir) for obj in self.objects)
@@ -306,7 +327,8 @@ def _format_errors(err: ValidationError) -> str:
     lines = []
     for e in err.errors():
         loc = ".".join(str(p) for p in e["loc"])
-        lines.append(f"  {loc}: {e['msg']}")
+        msg = e["msg"].removeprefix("Value error, ")
+        lines.append(f"  {loc}: {msg}" if loc else f"  {msg}")  # a check of the whole scene has no location
     return "\n".join(lines)
 
 
@@ -323,12 +345,5 @@ def parse_scene_config(data: dict[str, Any], *, base_dir: Path | None = None, so
 def load_scene_config(path: str | Path) -> SceneConfig:
     """Read and validate a scene YAML file (relative paths inside resolve against its folder)."""
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise ValueError(f"cannot read scene file {path}: {exc.strerror}") from exc
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise ValueError(f"scene file {path} is not valid YAML: {exc}") from exc
+    data = load_yaml(path, error=ConfigError)  # unreadable, not UTF-8, not YAML, or a key given twice
     return parse_scene_config(data, base_dir=path.resolve().parent, source=str(path))

@@ -21,6 +21,7 @@ from polarshape.acquisition.calibrate import (
     mosaic_to_superpixel_intensity,
     update_capture_yaml,
 )
+from polarshape.errors import ImageError
 
 SS = 4  # supersampling per axis
 
@@ -151,6 +152,38 @@ def test_lights_from_mosaic_files_into_capture_yaml(tmp_path: Path) -> None:
         update_capture_yaml(capture, lights=est[:2])
     with pytest.raises(ValueError, match="exactly one of mask"):
         light_directions_from_mirror_sphere([np.zeros((4, 4))])
+
+
+def _mosaic_files(tmp_path: Path, lights: np.ndarray, size: int = 160) -> tuple[list[Path], np.ndarray]:
+    """Raw-mosaic PNGs of an orthographic mirror sphere, one per light, and its (size, size) raw mask."""
+    paths, mask = [], None
+    for i, light in enumerate(lights):
+        image, mask = _render_ortho(light, size, size, size / 2 + 0.7, size / 2 - 1.3, 0.42 * size)
+        paths.append(tmp_path / f"{i:03d}.png")
+        cv2.imwrite(str(paths[-1]), np.rint(image * 3000).astype(np.uint16))
+    return paths, mask
+
+
+def test_a_superpixel_mask_like_a_captures_mask_png_is_accepted(tmp_path: Path) -> None:
+    lights = _lights()[:2]
+    paths, raw_mask = _mosaic_files(tmp_path, lights)
+    cv2.imwrite(str(tmp_path / "raw_mask.png"), raw_mask.astype(np.uint8) * 255)
+    superpixel_mask = mosaic_to_superpixel_intensity(raw_mask) >= 0.5  # (80, 80), as polarshape writes mask.png
+    cv2.imwrite(str(tmp_path / "mask.png"), superpixel_mask.astype(np.uint8) * 255)
+    from_raw = calibrate_lights_from_files(paths, mask_path=tmp_path / "raw_mask.png")
+    from_superpixels = calibrate_lights_from_files(paths, mask_path=tmp_path / "mask.png")
+    assert _angles_deg(from_superpixels, lights).max() < 0.5
+    assert _angles_deg(from_superpixels, from_raw).max() < 0.2
+    plain = calibrate_lights_from_files(paths, mask_path=tmp_path / "mask.png", mosaic=False)
+    assert _angles_deg(plain, lights).max() < 0.5
+
+
+def test_a_mask_of_another_size_names_both_sizes(tmp_path: Path) -> None:
+    paths, _ = _mosaic_files(tmp_path, _lights()[:1])
+    cv2.imwrite(str(tmp_path / "mask.png"), np.full((100, 120), 255, dtype=np.uint8))
+    with pytest.raises(ImageError, match=r"sphere mask .*mask.png: 120x100 pixels; it must be the images' size 160x160 "
+                                         r"or the super-pixel size 80x80"):
+        calibrate_lights_from_files(paths, mask_path=tmp_path / "mask.png")
 
 
 # -- ChArUco ----------------------------------------------------------------------------------------

@@ -79,6 +79,21 @@ def test_invalid_vectors_are_named():
         fmbrdf_stokes(torch.zeros(4, 3), torch.zeros(5, 3), n, ior=1.5, k_s=1, k_b=1, alpha=0.3, beta=2, kappa=0)
 
 
+@pytest.mark.parametrize("exact", [False, True])
+@pytest.mark.parametrize("bad", [float("nan"), float("inf"), -float("inf")])
+@pytest.mark.parametrize("which", ["normal", "light", "view"])
+def test_non_finite_vectors_are_named(which, bad, exact):
+    """NaN/Inf in N, L or V: a ValueError naming the argument (the fast path used to fail deep in
+    the Smith table, the exact path to return 0)."""
+    ok = torch.tensor([[0.0, 0.0, -1.0], [0.3, 0.0, -0.954]], dtype=F64)
+    vectors = {"normal": ok, "light": ok, "view": ok}
+    vectors[which] = ok.clone()
+    vectors[which][1, 0] = bad
+    with pytest.raises(ValueError, match=rf"^{which} must be finite; got 1 NaN/Inf value"):
+        fmbrdf_stokes(vectors["normal"], vectors["light"], vectors["view"], ior=1.5, k_s=1.0, k_b=0.5, alpha=0.3,
+                      beta=2.0, kappa=0.0, exact=exact)
+
+
 def test_surface_reciprocity():
     rng = np.random.default_rng(1)
     n, l, v = random_geometry(rng, 500, max_deg=85)

@@ -101,3 +101,24 @@ def test_saturated_superpixel_flags_whole_block() -> None:
     raw[3, 2] = 4095
     sat = reduce_mask_to_superpixels(saturation_mask(raw, 12), "any")
     np.testing.assert_array_equal(sat, [[False, False], [False, True]])
+
+
+@pytest.mark.parametrize("black_level", [0.0, 64.0, 100.25, 100.3])
+def test_counts_to_float_float32_is_the_rounded_float64_result_without_an_int64_copy(black_level: float) -> None:
+    """Every 16-bit code: float32 equals the float64 result rounded once (computed in float32 when
+    exact), and the conversion holds no 8-byte-per-pixel copy of the counts (numpy allocations are
+    traced; the old int64 copy alone was 8 bytes per pixel)."""
+    import tracemalloc
+
+    raw = np.tile(np.arange(65536, dtype=np.uint16), 8)  # (524288,)
+    expected = ((raw.astype(np.float64) - black_level) / (65535 - black_level)).astype(np.float32)
+    tracemalloc.start()
+    try:
+        x = counts_to_float(raw, 16, black_level, dtype=torch.float32)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    np.testing.assert_array_equal(x.numpy(), expected)
+    np.testing.assert_array_equal(counts_to_float(torch.from_numpy(raw.astype(np.int32)), 16, black_level).numpy(), expected)
+    per_pixel = 8 if black_level == 100.3 else 4  # not exact in float32: float64 first
+    assert peak < (per_pixel + 0.5) * raw.size

@@ -1,11 +1,21 @@
-"""Tests of polarshape.io.atomic: atomic files and folders, no silent overwrite."""
+"""Tests of polarshape.io.atomic: atomic files and folders, no silent overwrite, errors that name the
+folder and the cause (a file in the way, no permission, a full disk), permissions from the umask."""
 
 from __future__ import annotations
 
+import errno
+import os
+import re
+import stat
+import tempfile
+from collections.abc import Iterator
 from pathlib import Path
 
+import numpy as np
 import pytest
 
+from polarshape.cli.errors import exit_status
+from polarshape.errors import OutputPathError, OutputWriteError
 from polarshape.io.atomic import (
     OutputExistsError,
     atomic_directory,
@@ -13,6 +23,7 @@ from polarshape.io.atomic import (
     atomic_write_bytes,
     atomic_write_text,
 )
+from polarshape.io.capture import Capture, parse_capture_spec, write_capture
 
 
 def test_write_bytes_and_text(tmp_path: Path) -> None:
@@ -121,3 +132,96 @@ def test_stale_partials_of_dead_processes_are_removed(tmp_path: Path) -> None:
         (tmp / "a.txt").write_text("a")
     assert not stale.exists() and live.exists() and other.exists()
     assert (tmp_path / "result" / "a.txt").read_text() == "a"
+
+
+# --- a file in the way, no permission, a full disk -----------------------------------------------
+
+
+def _enospc(*args: object, **kwargs: object) -> None:
+    raise OSError(errno.ENOSPC, "No space left on device")
+
+
+def test_a_file_where_a_folder_must_be_is_named(tmp_path: Path) -> None:
+    (tmp_path / "afile").write_text("")
+    for write in (lambda p: atomic_write_text(p / "x.txt", "x"), lambda p: atomic_directory(p).__enter__()):
+        with pytest.raises(OutputPathError, match=re.escape(f"{tmp_path / 'afile'} is a file, not a folder")) as info:
+            write(tmp_path / "afile" / "sub")
+        assert isinstance(info.value, NotADirectoryError) and exit_status(info.value) == 2
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["afile"]
+
+
+def test_no_permission_to_create_the_folder(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    def refuse(*args: object, **kwargs: object) -> None:
+        raise PermissionError(errno.EACCES, "Permission denied", str(args[0]) if args else None)
+
+    monkeypatch.setattr(os, "mkdir", refuse)
+    with pytest.raises(OutputWriteError, match=re.escape(f"cannot create {tmp_path / 'ro'}: permission denied")) as info:
+        atomic_write_text(tmp_path / "ro" / "x.txt", "x")
+    assert exit_status(info.value) == 3
+    monkeypatch.undo()
+    monkeypatch.setattr(tempfile, "mkdtemp", refuse)
+    with pytest.raises(OutputWriteError, match=re.escape(f"cannot create {tmp_path / 'res'}: permission denied")):
+        with atomic_directory(tmp_path / "res"):
+            pass
+    monkeypatch.setattr(tempfile, "mkstemp", refuse)
+    with pytest.raises(OutputWriteError, match=re.escape(f"cannot create {tmp_path / 'x.txt'}: permission denied")):
+        atomic_write_text(tmp_path / "x.txt", "x")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_full_disk_names_the_folder_and_leaves_nothing(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(Path, "write_bytes", _enospc)
+    with pytest.raises(OutputWriteError, match=re.escape(
+            f"no space left on device while writing {tmp_path / 'a.txt'}: free space or choose another --out")) as info:
+        atomic_write_text(tmp_path / "a.txt", "x")
+    assert exit_status(info.value) == 3 and info.value.errno == errno.ENOSPC
+    with pytest.raises(OutputWriteError, match=re.escape(
+            f"no space left on device while writing {tmp_path / 'res'} (params.json): free space or choose another --out")):
+        with atomic_directory(tmp_path / "res") as work:
+            atomic_write_text(work / "params.json", "{}")
+    assert list(tmp_path.iterdir()) == []  # no .res.partial-*, no temporary file
+
+
+def test_an_error_reading_an_input_is_left_as_it_is(tmp_path: Path) -> None:
+    with pytest.raises(FileNotFoundError), atomic_directory(tmp_path / "res"):
+        (tmp_path / "missing.txt").read_text()
+    assert list(tmp_path.iterdir()) == []
+
+
+# --- permissions follow the umask ----------------------------------------------------------------
+
+
+@pytest.fixture
+def umask_022() -> Iterator[None]:
+    old = os.umask(0o022)
+    try:
+        yield
+    finally:
+        os.umask(old)
+
+
+@pytest.mark.usefixtures("umask_022")
+def test_written_files_and_folders_follow_the_umask(tmp_path: Path) -> None:
+    path = atomic_write_text(tmp_path / "a.txt", "x")
+    assert stat.S_IMODE(path.stat().st_mode) == 0o644
+    with atomic_directory(tmp_path / "res") as work:
+        atomic_write_text(work / "params.json", "{}")
+        with atomic_path(work / "b.npy") as tmp:
+            tmp.write_bytes(b"x")
+    assert stat.S_IMODE((tmp_path / "res").stat().st_mode) == 0o755
+    assert {p.name: stat.S_IMODE(p.stat().st_mode) for p in (tmp_path / "res").iterdir()} == {
+        "params.json": 0o644, "b.npy": 0o644}
+    os.umask(0o077)
+    assert stat.S_IMODE(atomic_write_text(tmp_path / "private.txt", "x").stat().st_mode) == 0o600
+
+
+@pytest.mark.usefixtures("umask_022")
+def test_a_written_capture_follows_the_umask(tmp_path: Path) -> None:
+    frames = np.full((2, 8, 8), 100, dtype=np.uint16)
+    spec = parse_capture_spec({"format": "polarshape-capture/1", "camera": {"projection": "orthographic", "bit_depth": 12},
+                               "lights": [{"direction": [0.0, 0.0, -1.0], "frame": "frames/000.png"},
+                                          {"direction": [0.6, 0.0, -0.8], "frame": "frames/001.png"}]})
+    write_capture(tmp_path / "cap", Capture(spec=spec, frames=frames))
+    modes = {str(p.relative_to(tmp_path)): stat.S_IMODE(p.stat().st_mode) for p in [tmp_path / "cap", *(tmp_path / "cap").rglob("*")]}
+    assert modes == {name: 0o755 if (tmp_path / name).is_dir() else 0o644 for name in modes}
+    assert "cap/capture.yaml" in modes and "cap/frames/000.png" in modes

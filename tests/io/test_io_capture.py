@@ -244,8 +244,15 @@ def test_light_direction_not_unit(folder: Path) -> None:
 
 def test_light_behind_the_object(folder: Path) -> None:
     _edit_yaml(folder, lambda d: d["lights"][2].update(direction=[0.0, -0.6, 0.8]))
-    with pytest.raises(CaptureError, match=r"lights\[2\]\.direction: z = 0\.8 must be < 0"):
+    with pytest.raises(CaptureError, match=r"lights\[2\]\.direction: z = 0\.8 must be < 0, or 0 for a grazing light: .*z > 0 puts it behind"):
         load_capture(folder)
+
+
+def test_a_grazing_light_is_allowed(folder: Path) -> None:
+    """z = 0: the light lies in the plane through the object square to the view axis; it still
+    lights the object's sides (only z > 0 is behind it)."""
+    _edit_yaml(folder, lambda d: d["lights"][2].update(direction=[0.0, -1.0, 0.0]))
+    assert load_capture(folder).lights()[2].direction == (0.0, -1.0, 0.0)
 
 
 def test_light_needs_exactly_one_of_direction_position(folder: Path) -> None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import torch
 
@@ -59,3 +60,21 @@ def test_crop_and_paste_back_round_trip() -> None:
     flags = paste_crop(crop.mask, crop, inp, False)
     assert flags.dtype == torch.bool and torch.equal(flags, inp.mask)
     assert math.isnan(float(paste_crop(crop.stokes[0, 0], crop, inp)[0, 0]))
+
+
+def test_zero_stride_lights_stay_views_through_crop_and_pyramid() -> None:
+    """Directional lights as expand() views (what preprocessing returns): the pyramid keeps them views
+    (no (K, H, W, 3) array) and agrees with the materialised inputs."""
+    inp = _inputs()
+    k, (h, w) = inp.num_lights, inp.shape
+    direction = torch.nn.functional.normalize(torch.tensor([[0.3, 0.1, -1.0], [-0.2, 0.4, -1.0], [0.0, -0.5, -1.0]],
+                                                           dtype=torch.float64), dim=-1)
+    views = replace(inp, lights=direction[:, None, None].expand(k, h, w, 3),
+                    irradiance=torch.tensor([1.0, 0.5, 2.0], dtype=torch.float64)[:, None, None].expand(k, h, w))
+    dense = replace(views, lights=views.lights.contiguous(), irradiance=views.irradiance.contiguous())
+    half, half_dense = downsample_inputs(crop_inputs(views)), downsample_inputs(crop_inputs(dense))
+    assert half.lights.stride()[1:3] == (0, 0) and half.irradiance.stride()[1:] == (0, 0)
+    torch.testing.assert_close(half.lights, half_dense.lights, rtol=0, atol=1e-12)
+    torch.testing.assert_close(half.irradiance, half_dense.irradiance, rtol=0, atol=1e-12)
+    obs, obs_dense = flatten_observations(views, views.mask), flatten_observations(dense, dense.mask)
+    assert torch.equal(obs.lights, obs_dense.lights) and torch.equal(obs.irradiance, obs_dense.irradiance)

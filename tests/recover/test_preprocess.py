@@ -35,7 +35,8 @@ def _capture(stokes: torch.Tensor, *, projection: str = "orthographic", mask: np
 
 
 def _stokes(k: int = 4, h: int = 6, w: int = 8) -> torch.Tensor:
-    s0 = torch.full((k, h, w), 0.4, dtype=torch.float64)
+    # s0 changes with the light (a real capture's does; frames that do not are refused)
+    s0 = 0.4 + 0.02 * torch.arange(k, dtype=torch.float64)[:, None, None].expand(k, h, w)
     s1 = torch.full((k, h, w), 0.1, dtype=torch.float64)
     s2 = torch.full((k, h, w), -0.05, dtype=torch.float64)
     return torch.stack([s0, s1, s2], 1)
@@ -204,3 +205,33 @@ def test_polarisation_signal_tells_noise_from_polarisation() -> None:
         ratio = polarisation_signal(linear, sites, valid)
         assert (ratio >= POLARISATION_SIGNAL_MIN) == expect, (dolp, ratio)
     assert polarisation_signal(torch.zeros(1, 2, 8, 8), torch.zeros(1, 4, 8, 8), torch.zeros(1, 8, 8, dtype=torch.bool)) == 0.0
+
+
+@pytest.mark.parametrize("projection", ["orthographic", "perspective"])
+def test_preprocessing_streams_the_lights_and_keeps_directional_lights_as_views(projection: str) -> None:
+    """One frame at a time: no copy of all K frames as int64 / float64 (numpy allocations are traced;
+    one was 8 bytes per raw pixel per light, 64 here); directional L and E are zero-stride views. The
+    Stokes images are those of the whole stack, demosaiced at once."""
+    import tracemalloc
+
+    from polarshape.brdf.geometry import sensor_plane_basis, sensor_plane_stokes
+    from polarshape.imaging.pixels import counts_to_float
+    from polarshape.recover.preprocess import superpixel_stokes
+
+    k, h, w = 8, 32, 40
+    stokes = _stokes(k, h, w)
+    stokes[:, 0] += 0.1 * torch.rand(k, h, w, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    capture = _capture(stokes, projection=projection)
+    tracemalloc.start()
+    try:
+        inp = preprocess_capture(capture)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert peak < 32 * (2 * h) * (2 * w)  # bytes: a few float64 / int64 frames, not K of them
+    assert inp.lights.shape == (k, h, w, 3) and inp.lights.stride()[1:3] == (0, 0)
+    assert inp.irradiance.shape == (k, h, w) and inp.irradiance.stride()[1:] == (0, 0)
+    whole = superpixel_stokes(counts_to_float(capture.frames, 12, dtype=torch.float64), capture.layout)  # (K, 3, H, W)
+    if projection == "perspective":
+        whole = sensor_plane_stokes(whole, basis=torch.linalg.inv(sensor_plane_basis(inp.view.double())))
+    torch.testing.assert_close(inp.stokes, whole.float(), rtol=0, atol=1e-6)

@@ -129,3 +129,20 @@ def test_missing_files_are_named(tmp_path):
     config = parse_scene_config(_with(objects=[{"shape": {"type": "mesh", "path": "gone.ply"}}]), base_dir=tmp_path)
     with pytest.raises(ValueError, match="gone.ply"):
         config.build_scene()
+
+
+def test_a_point_light_behind_the_object_is_refused():
+    """z is forward, away from the camera: a point light at or beyond the nearest object's centre
+    lights the side the camera does not see."""
+    with pytest.raises(ValueError, match=r"lights\[1\]\.position z = 1\.2 m is at or beyond the centre of the nearest "
+                                         r"object \(objects\[0\], z = 1 m\): behind the object seen from the camera: "
+                                         r"z is forward, away from the camera"):
+        parse_scene_config(_with(lights=[{"position": [0, 0, 0.5]}, {"position": [0.1, 0, 1.2]}]))
+    parse_scene_config(_with(lights=[{"position": [0, 0, 0.5]}, {"position": [0.1, 0, -0.2]}]))  # camera side
+
+
+def test_a_backdrop_behind_the_object_does_not_excuse_a_light_behind_it():
+    backdrop = {"shape": {"type": "plane", "point": [0, 0, 2], "normal": [0, 0, -1]}, "in_mask": False}
+    objects = [*BASE["objects"], backdrop]
+    with pytest.raises(ValueError, match=r"lights\[0\]\.position .*objects\[0\], z = 1 m"):
+        parse_scene_config(_with(objects=objects, lights=[{"position": [0, 0, 1.5]}]))

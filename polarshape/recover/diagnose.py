@@ -1,0 +1,253 @@
+"""Whether a capture can be recovered at all, and what in it looks wrong: :func:`check_observations`,
+called once by :func:`polarshape.recover.preprocess.preprocess_capture`, decided from the counts the
+camera delivered (never from a fit that would have to invent an answer first).
+
+Refused with a :class:`~polarshape.errors.CaptureError` that names the cause and the fix:
+
+- a light behind the object seen from the camera (a point light at or beyond the surface's median
+  depth, a direction pointing away from the camera);
+- no usable observations: no mask pixel has :data:`~polarshape.recover.priors.MIN_OBSERVATIONS`
+  lit, unsaturated views — every frame dark, dark because of ``camera.black_level``, every
+  observation saturated, saturated because of the saturation margin, or a mix;
+- frames that do not change with the light (s0 the same in every light to a few quantisation steps
+  at every pixel: one frame written K times, a light rig that did not switch).
+
+Warned (:class:`~polarshape.errors.SuspiciousInputWarning`; the run goes on):
+
+- two lights at one place (directions < 0.5° apart, positions < 1 mm apart), two bit-identical frames;
+- the brightest count below 1/16 of full scale (low-bit data declared at a higher ``bit_depth``,
+  or an exposure far too short).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import math
+import warnings
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from polarshape.errors import CaptureError, SuspiciousInputWarning
+from polarshape.imaging.pixels import max_count, reduce_mask_to_superpixels
+from polarshape.io.capture import Capture
+from polarshape.lights import DirectionalLight, PointLight
+from polarshape.recover.observations import RecoveryInputs
+from polarshape.recover.priors import MIN_OBSERVATIONS
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["CONSTANT_STEPS", "DUPLICATE_ANGLE_DEG", "DUPLICATE_DISTANCE_M", "LOW_SIGNAL_FRACTION",
+           "check_observations"]
+
+#: A pixel whose s0 spreads over at most this many quantisation steps across its usable
+#: observations does not change with the light; every pixel so: the capture is refused.
+CONSTANT_STEPS = 4
+#: Directional lights closer than this (degrees) light the object from one direction.
+DUPLICATE_ANGLE_DEG = 0.5
+#: Point lights closer than this (metres) are one light.
+DUPLICATE_DISTANCE_M = 1e-3
+#: The brightest count below this fraction of full scale (bit depths above 8): a warning.
+LOW_SIGNAL_FRACTION = 1.0 / 16.0
+
+
+def check_observations(
+    capture: Capture,
+    inputs: RecoveryInputs,
+    *,
+    dark: Tensor,
+    saturated: Tensor,
+    dark_threshold: float,
+    saturation_margin: int,
+    points: np.ndarray | None = None,
+) -> None:
+    """Refuse a capture recovery cannot use, warn about one that looks wrong (module docstring).
+
+    Args:
+        capture: the capture (frames (K, 2H, 2W) counts, capture.yaml).
+        inputs: its preprocessed tensors (``valid`` (K, H, W), ``mask`` (H, W), ``stokes`` (K, 3, H, W)).
+        dark, saturated: (K, H, W) bool observations below ``dark_threshold`` / with a site at the
+            top count less ``saturation_margin`` (as preprocessing found them).
+        dark_threshold: fraction of full scale below which an observation is dark.
+        saturation_margin: counts below the top still treated as saturated.
+        points: (H, W, 3) surface points (metres, camera frame), when preprocessing had them.
+
+    Raises:
+        CaptureError: a light behind the object, no usable observations, frames that do not change
+            with the light.
+    """
+    mask = inputs.mask.cpu()
+    region = mask if bool(mask.any()) else torch.ones_like(mask)  # (H, W): where the object is
+    _check_lights_in_front(capture, region, points)
+    _check_usable(capture, inputs.valid.cpu(), region, dark.cpu(), saturated.cpu(), dark_threshold, saturation_margin)
+    _check_light_changes(capture, inputs)
+    for message in (*_coincident_lights(capture), *_identical_frames(capture), *_low_counts(capture)):
+        warnings.warn(SuspiciousInputWarning(message), stacklevel=2)
+
+
+def _saturation_count(bit_depth: int) -> int:
+    """The count at which a site is saturated (as preprocessing has it: a 16-bit format carrying a
+    12-bit ADC tops out at 4095 · 16 = 65520)."""
+    return max_count(bit_depth) if bit_depth < 16 else 65520
+
+
+def _check_lights_in_front(capture: Capture, region: Tensor, points: np.ndarray | None) -> None:
+    """No light may sit behind the object: point lights at or beyond the median depth of the
+    surface ``points`` (when given), directions with z > 0."""
+    lights = capture.lights()
+    depth = math.inf
+    if points is not None and lights.has_point_lights:
+        z = np.asarray(points, dtype=np.float64)[..., 2][region.numpy()]
+        z = z[np.isfinite(z)]
+        if z.size:
+            depth = float(np.median(z))
+    bad = lights.behind(depth)
+    if not bad:
+        return
+    lines = []
+    for k in bad:
+        light = lights[k]
+        if isinstance(light, PointLight):
+            lines.append(f"lights[{k}].position z = {light.position[2]:.6g} m is at or beyond the surface's median "
+                         f"depth {depth:.6g} m")
+        else:
+            assert isinstance(light, DirectionalLight)
+            lines.append(f"lights[{k}].direction z = {light.direction[2]:.6g} > 0 points away from the camera")
+    raise CaptureError(
+        f"capture.yaml: {'; '.join(lines)}: behind the object seen from the camera: z is forward, away from the "
+        "camera (camera frame: x right, y down), so a light on the camera side has a smaller z than the surface "
+        "(a direction z < 0); flip the sign of z if your convention has +z toward the camera, or give the surface "
+        "depth (polarshape run: integration.reference_depth_m)"
+    )
+
+
+def _region_counts(frames: np.ndarray, region: Tensor) -> np.ndarray:
+    """(K, N) counts of the sites of the ``region`` (H, W) super-pixels."""
+    sites = np.repeat(np.repeat(region.numpy(), 2, axis=0), 2, axis=1)  # (2H, 2W)
+    return frames[:, sites]
+
+
+def _check_usable(capture: Capture, valid: Tensor, region: Tensor, dark: Tensor, saturated: Tensor,
+                  dark_threshold: float, margin: int) -> None:
+    """At least one pixel of the ``region`` needs :data:`MIN_OBSERVATIONS` ``valid`` (K, H, W)
+    observations; otherwise the cause is read from the counts and named."""
+    k = valid.shape[0]
+    if k < MIN_OBSERVATIONS:
+        return  # too few lights: recovery refuses the capture itself, naming the fix
+    if bool(((valid.sum(0) >= MIN_OBSERVATIONS) & region).any()):
+        return
+    obs = region.unsqueeze(0).expand_as(valid)  # (K, H, W)
+    n = int(obs.sum())
+    n_sat = int((saturated & obs).sum())
+    n_dark = int((dark & ~saturated & obs).sum())
+    camera = capture.spec.camera
+    bits, black = camera.bit_depth, float(camera.black_level)
+    full = max_count(bits)
+    counts = _region_counts(capture.frames, region)  # (K, N)
+    hi = int(counts.max()) if counts.size else 0
+    dark_hint = (f"the brightest count is {hi} of full scale {full} (observations below preprocess.dark_threshold "
+                 f"{dark_threshold:g} of full scale are dark)")
+    if n_dark == n:
+        if black > 0 and hi <= black:
+            cause = (f"every count is at or below camera.black_level {black:g} (the brightest is {hi}): black_level is in "
+                     f"counts of the declared bit_depth {bits} (full scale {full}); lower it")
+        elif black > 0 and hi >= dark_threshold * full:
+            cause = (f"camera.black_level {black:g} leaves the brightest count {hi} below preprocess.dark_threshold "
+                     f"{dark_threshold:g} of full scale: black_level is in counts of the declared bit_depth {bits} "
+                     f"(full scale {full}); lower it")
+        else:
+            cause = f"all frames are dark: {dark_hint} — lights off, lens cap, exposure too short?"
+    elif n_sat == n:
+        top = _saturation_count(bits)
+        clipped = reduce_mask_to_superpixels(torch.from_numpy(capture.frames >= top), "any")  # (K, H, W) at margin 0
+        if margin > 0 and not bool(clipped[obs].all()):
+            cause = (f"preprocess.saturation_margin_counts {margin} leaves no count below the saturation level "
+                     f"{top - margin} (top count {top}): lower it")
+        else:
+            cause = f"every observation is saturated (a site at the top count {top}): shorten the exposure"
+    elif n_dark + n_sat == n:
+        all_dark = [i for i in range(k) if bool((dark[i] | ~region).all())]
+        all_sat = [i for i in range(k) if bool((saturated[i] | ~region).all())]
+        cause = (f"every observation is dark ({n_dark} of {n}; wholly dark: lights {_listed(all_dark)}) or saturated "
+                 f"({n_sat} of {n}; wholly saturated: lights {_listed(all_sat)}): one exposure suits none of the lights "
+                 "— check the lights' intensities and the exposure")
+    else:
+        cause = (f"of {n} observations {n_dark} are dark, {n_sat} saturated and the other {n - n_dark - n_sat} too few "
+                 f"per pixel or straddling an edge: every pixel needs {MIN_OBSERVATIONS} lights that reach it unsaturated "
+                 "— check the lights and the exposure")
+    raise CaptureError(f"capture: no usable observations (no mask pixel has {MIN_OBSERVATIONS} lit, unsaturated "
+                       f"views): {cause}")
+
+
+def _listed(indices: list[int]) -> str:
+    return ", ".join(map(str, indices)) if indices else "none"
+
+
+def _check_light_changes(capture: Capture, inputs: RecoveryInputs) -> None:
+    """Refuse frames whose s0 does not change with the light: at every pixel with ≥ 2 usable
+    observations, max_k s0 − min_k s0 ≤ :data:`CONSTANT_STEPS` quantisation steps."""
+    k = inputs.num_lights
+    if k < 2:
+        return
+    s0 = inputs.stokes[:, 0]  # (K, H, W)
+    valid = inputs.valid & inputs.mask.unsqueeze(0)
+    top = torch.full(inputs.shape, -math.inf, dtype=s0.dtype, device=s0.device)
+    low = torch.full(inputs.shape, math.inf, dtype=s0.dtype, device=s0.device)
+    for i in range(k):  # running extremes: no (K, H, W) copies
+        top = torch.where(valid[i], torch.maximum(top, s0[i]), top)
+        low = torch.where(valid[i], torch.minimum(low, s0[i]), low)
+    pixels = valid.sum(0) >= 2
+    if not bool(pixels.any()):
+        return
+    camera = capture.spec.camera
+    step = 1.0 / (max_count(camera.bit_depth) - float(camera.black_level))  # one count, fraction of full scale
+    spread = float((top - low)[pixels].max()) / step
+    logger.debug("diagnose: largest s0 change across the lights %.1f quantisation steps", spread)
+    if spread <= CONSTANT_STEPS:
+        raise CaptureError(
+            f"capture: the frames do not change with the light: at each of the {int(pixels.sum())} mask pixels, s0 "
+            f"differs across the {k} lights by at most {spread:.1f} quantisation steps (≤ {CONSTANT_STEPS}) — the "
+            f"same frame written {k} times? light rig not switching? Check lights[*].frame in capture.yaml and the rig"
+        )
+
+
+def _coincident_lights(capture: Capture) -> list[str]:
+    lights = capture.lights()
+    frames = [light.frame for light in capture.spec.lights]
+    out = []
+    for i, j, sep in lights.coincident(DUPLICATE_ANGLE_DEG, DUPLICATE_DISTANCE_M):
+        what = (f"the same direction ({sep:.2f}° apart)" if isinstance(lights[i], DirectionalLight)
+                else f"the same position ({1000 * sep:.2f} mm apart)")
+        out.append(f"capture.yaml lights[{i}], lights[{j}]: lights {i} and {j} ({frames[i]}, {frames[j]}) have {what}: "
+                   "the second adds no shape information — a copied entry?")
+    return out
+
+
+def _identical_frames(capture: Capture) -> list[str]:
+    groups: dict[bytes, list[int]] = {}
+    for k, frame in enumerate(capture.frames):
+        digest = hashlib.blake2b(np.ascontiguousarray(frame).tobytes(), digest_size=16).digest()
+        groups.setdefault(digest, []).append(k)
+    names = [light.frame for light in capture.spec.lights]
+    out = []
+    for same in groups.values():
+        if len(same) > 1:
+            listed = ", ".join(f"lights[{k}].frame {names[k]}" for k in same)
+            frame = capture.frames[same[0]]
+            lo, hi = int(frame.min()), int(frame.max())
+            hint = (f"every count is {lo}: lights that did not fire, a lens cap?" if lo == hi
+                    else "the same image saved under several lights? Check the frame files and the light rig")
+            out.append(f"capture.yaml {listed}: {len(same)} frames are bit-identical — {hint}")
+    return out
+
+
+def _low_counts(capture: Capture) -> list[str]:
+    bits = capture.bit_depth
+    full = max_count(bits)
+    hi = int(capture.frames.max()) if capture.frames.size else 0
+    if bits > 8 and hi < LOW_SIGNAL_FRACTION * full:
+        return [f"camera.bit_depth: the brightest count {hi} is below 1/16 of full scale {full}: "
+                f"{max(hi.bit_length(), 1)}-bit data declared bit_depth {bits}? or exposure far too short"]
+    return []
