@@ -77,7 +77,7 @@ def stage(args: argparse.Namespace) -> dict:
     if args.stage == "simulate":
         from polarshape.cli import main as cli
 
-        status = cli(["simulate", args.scene, "--out", args.capture, "--overwrite", "--quiet"])
+        status = cli(["simulate", str(args.scene), "--out", str(args.capture), "--overwrite", "--quiet"])
         extra["status"] = status
     elif args.stage in ("load", "preprocess"):
         import torch
@@ -98,7 +98,7 @@ def stage(args: argparse.Namespace) -> dict:
     else:  # run
         from polarshape.cli import main as cli
 
-        extra["status"] = cli(["run", args.config, "--out", args.out, "--overwrite", "--quiet"])
+        extra["status"] = cli(["run", str(args.config), "--out", str(args.out), "--overwrite", "--quiet"])
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # KiB on Linux
     return {"seconds": time.perf_counter() - t0, "max_rss_mb": peak_mb, **extra}
 
