@@ -53,6 +53,7 @@ from polarshape.io.capture import Capture, load_capture, write_capture
 from polarshape.io.results import RESULT_FORMAT, output_refusal, write_maps, write_params
 from polarshape.metrics import angular_error_deg, angular_error_stats, depth_rmse_aligned
 from polarshape.normals import NormalsResult, recover_normals
+from polarshape.recover.diagnose import dark_capture_cause
 from polarshape.recover.observations import RecoveryInputs
 from polarshape.recover.preprocess import capture_camera, preprocess_capture
 from polarshape.report import ReportData, write_report
@@ -174,18 +175,13 @@ def _clean_mask(mask: np.ndarray, erode_px: int, min_component_px: int) -> np.nd
 
 
 def _refuse_dark_capture(capture: Capture, threshold: float) -> None:
-    """An empty threshold mask: the capture is dark (or below its black level) — name the cause."""
+    """An empty threshold mask: a capture dark everywhere (or below its black level) is refused, naming the cause."""
     camera = capture.spec.camera
     full, black = max_count(camera.bit_depth), float(camera.black_level)
     top = int(capture.frames.max()) if capture.frames.size else 0
-    if black > 0 and top <= black:
-        raise CaptureError(f"capture: every count is at or below camera.black_level {black:g} (the brightest is {top}): "
-                           f"black_level is in counts of the declared bit_depth {camera.bit_depth} (full scale {full}); "
-                           "lower it")
-    if (top - black) / (full - black) <= threshold:
-        raise CaptureError(f"capture: all frames are dark: the brightest count is {top} of full scale {full}, below "
-                           f"preprocess.mask_threshold {threshold:g} of full scale (no mask.png, so the object is where "
-                           "the frames are bright) — lights off, lens cap, exposure too short? Or add a mask.png")
+    if top <= black or (top - black) / (full - black) <= threshold:
+        cause = dark_capture_cause(capture, top, threshold, "preprocess.mask_threshold")
+        raise CaptureError(f"capture (no mask.png: the object is where the frames are bright): {cause}")
 
 
 def _object_mask(capture: Capture, config: RunConfig, log: _StageLog) -> np.ndarray:

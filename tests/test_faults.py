@@ -34,23 +34,11 @@ import polarshape.io.results as results
 import polarshape.pipeline as pipeline
 from polarshape.cli import main
 
-REPO = Path(__file__).resolve().parents[1]
-SPHERE = REPO / "configs" / "scenes" / "sphere.yaml"
-
 
 @pytest.fixture(scope="module")
-def capture(tmp_path_factory: pytest.TempPathFactory) -> Path:
+def capture(tmp_path_factory: pytest.TempPathFactory, render_sphere: Callable[..., Path]) -> Path:
     """A 32×32-raw-pixel sphere under 8 lights, rendered once (read-only to the tests: they copy it)."""
-    from polarshape.acquisition.simulated import SimulatedCamera
-
-    folder = tmp_path_factory.mktemp("faults")
-    scene = yaml.safe_load(SPHERE.read_text())
-    scene["camera"].update(width=32, height=32, pixel_size_m=8.0e-4)
-    scene["lights"] = scene["lights"][:8]
-    (folder / "scene.yaml").write_text(yaml.safe_dump(scene))
-    with SimulatedCamera(folder / "scene.yaml", seed=1) as camera:
-        camera.render_capture(folder / "capture", progress=False)
-    return folder / "capture"
+    return render_sphere(tmp_path_factory.mktemp("faults"), width=32, pixel_size_m=8.0e-4, lights=8, seed=1)
 
 
 def _config(folder: Path, capture: Path) -> Path:

@@ -17,6 +17,7 @@ from torch import Tensor
 from polarshape.checks import check_shape, to_numpy
 
 __all__ = [
+    "saturation_count",
     "BIT_DEPTHS",
     "PIXEL_FORMATS",
     "bit_depth_of",
@@ -64,6 +65,13 @@ def bit_depth_of(pixel_format: str) -> int:
 def max_count(bit_depth: int) -> int:
     """Largest count of a ``bit_depth``-bit pixel: ``2**bit_depth - 1``."""
     return (1 << check_bit_depth(bit_depth)) - 1
+
+
+def saturation_count(bit_depth: int) -> int:
+    """The count at which a site is clipped: :func:`max_count`, except that a 16-bit format
+    carrying a 12-bit ADC (the IMX250MZR's PolarizeMono16) tops out at 4095 · 16 = 65520, not
+    65535, so the last 12-bit step counts as saturated."""
+    return max_count(bit_depth) if bit_depth < 16 else 65520
 
 
 def _check_black_level(black_level: float, bit_depth: int) -> float:

@@ -68,6 +68,19 @@ def _write_error(exc: OSError, path: Path, detail: str = "") -> OutputWriteError
     return OutputWriteError(message, errno=exc.errno, path=str(path))
 
 
+@contextlib.contextmanager
+def _named_write_errors(path: Path) -> Iterator[None]:
+    """Inside, an ``OSError`` about where we write (:func:`_write_error`) becomes an
+    :class:`OutputWriteError` naming ``path``; any other error passes unchanged."""
+    try:
+        yield
+    except OSError as exc:
+        error = _write_error(exc, path)
+        if error is None:
+            raise
+        raise error from exc
+
+
 def _inside(exc: OSError, folder: Path) -> str | None:
     """The file of ``exc`` relative to ``folder`` if it lies there (written by us), else None."""
     name = getattr(exc, "path", None) or exc.filename
@@ -91,13 +104,8 @@ def _make_folder(folder: Path, target: Path) -> None:
         if above.exists():
             raise OutputPathError(f"{above} is a file, not a folder, so {target} cannot be created there; "
                                   "choose another output path")
-    try:
+    with _named_write_errors(folder):
         folder.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        error = _write_error(exc, folder)
-        if error is None:
-            raise
-        raise error from exc
 
 
 def _check_destination(path: Path, overwrite: bool) -> None:
@@ -122,13 +130,8 @@ def atomic_path(path: str | os.PathLike[str], *, overwrite: bool = False) -> Ite
     path = Path(path)
     _check_destination(path, overwrite)
     _make_folder(path.parent, path)
-    try:
+    with _named_write_errors(path):
         fd, tmp_name = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=path.parent)
-    except OSError as exc:
-        error = _write_error(exc, path)
-        if error is None:
-            raise
-        raise error from exc
     tmp = Path(tmp_name)
     try:
         os.fchmod(fd, 0o666 & ~current_umask())  # mkstemp makes it 0600
@@ -216,13 +219,8 @@ def atomic_directory(
     _check_destination(path, overwrite)
     _make_folder(path.parent, path)
     remove_stale_partials(path)
-    try:
+    with _named_write_errors(path):
         tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.partial-{os.getpid()}-", dir=path.parent))
-    except OSError as exc:
-        error = _write_error(exc, path)
-        if error is None:
-            raise
-        raise error from exc
     try:
         os.chmod(tmp, 0o777 & ~current_umask())  # mkdtemp makes it 0700
         try:

@@ -31,7 +31,7 @@ import torch
 from torch import Tensor
 
 from polarshape.errors import CaptureError, SuspiciousInputWarning
-from polarshape.imaging.pixels import max_count, reduce_mask_to_superpixels
+from polarshape.imaging.pixels import max_count, reduce_mask_to_superpixels, saturation_count
 from polarshape.io.capture import Capture
 from polarshape.lights import DirectionalLight, PointLight
 from polarshape.recover.observations import RecoveryInputs
@@ -40,7 +40,7 @@ from polarshape.recover.priors import MIN_OBSERVATIONS
 logger = logging.getLogger(__name__)
 
 __all__ = ["CONSTANT_STEPS", "DUPLICATE_ANGLE_DEG", "DUPLICATE_DISTANCE_M", "LOW_SIGNAL_FRACTION",
-           "check_observations"]
+           "check_observations", "dark_capture_cause"]
 
 #: A pixel whose s0 spreads over at most this many quantisation steps across its usable
 #: observations does not change with the light; every pixel so: the capture is refused.
@@ -87,12 +87,6 @@ def check_observations(
         warnings.warn(SuspiciousInputWarning(message), stacklevel=2)
 
 
-def _saturation_count(bit_depth: int) -> int:
-    """The count at which a site is saturated (as preprocessing has it: a 16-bit format carrying a
-    12-bit ADC tops out at 4095 · 16 = 65520)."""
-    return max_count(bit_depth) if bit_depth < 16 else 65520
-
-
 def _check_lights_in_front(capture: Capture, region: Tensor, points: np.ndarray | None) -> None:
     """No light may sit behind the object: point lights at or beyond the median depth of the
     surface ``points`` (when given), directions with z > 0."""
@@ -129,6 +123,29 @@ def _region_counts(frames: np.ndarray, region: Tensor) -> np.ndarray:
     return frames[:, sites]
 
 
+def dark_capture_cause(capture: Capture, brightest: int, threshold: float, threshold_name: str) -> str:
+    """Why a capture whose every observation is dark is so: its black level, or dark frames.
+
+    Args:
+        capture: the capture (``camera.bit_depth``, ``camera.black_level``).
+        brightest: its brightest count (where the object is).
+        threshold: the fraction of full scale below which an observation is dark, and
+            ``threshold_name`` the key that sets it (named in the message).
+    """
+    camera = capture.spec.camera
+    bits, black = camera.bit_depth, float(camera.black_level)
+    full = max_count(bits)
+    if black > 0 and brightest <= black:
+        return (f"every count is at or below camera.black_level {black:g} (the brightest is {brightest}): black_level is "
+                f"in counts of the declared bit_depth {bits} (full scale {full}); lower it")
+    if black > 0 and brightest >= threshold * full:
+        return (f"camera.black_level {black:g} leaves the brightest count {brightest} below {threshold_name} "
+                f"{threshold:g} of full scale: black_level is in counts of the declared bit_depth {bits} "
+                f"(full scale {full}); lower it")
+    return (f"all frames are dark: the brightest count is {brightest} of full scale {full} (observations below "
+            f"{threshold_name} {threshold:g} of full scale are dark) — lights off, lens cap, exposure too short?")
+
+
 def _check_usable(capture: Capture, valid: Tensor, region: Tensor, dark: Tensor, saturated: Tensor,
                   dark_threshold: float, margin: int) -> None:
     """At least one pixel of the ``region`` needs :data:`MIN_OBSERVATIONS` ``valid`` (K, H, W)
@@ -142,25 +159,13 @@ def _check_usable(capture: Capture, valid: Tensor, region: Tensor, dark: Tensor,
     n = int(obs.sum())
     n_sat = int((saturated & obs).sum())
     n_dark = int((dark & ~saturated & obs).sum())
-    camera = capture.spec.camera
-    bits, black = camera.bit_depth, float(camera.black_level)
-    full = max_count(bits)
+    bits = capture.spec.camera.bit_depth
     counts = _region_counts(capture.frames, region)  # (K, N)
     hi = int(counts.max()) if counts.size else 0
-    dark_hint = (f"the brightest count is {hi} of full scale {full} (observations below preprocess.dark_threshold "
-                 f"{dark_threshold:g} of full scale are dark)")
     if n_dark == n:
-        if black > 0 and hi <= black:
-            cause = (f"every count is at or below camera.black_level {black:g} (the brightest is {hi}): black_level is in "
-                     f"counts of the declared bit_depth {bits} (full scale {full}); lower it")
-        elif black > 0 and hi >= dark_threshold * full:
-            cause = (f"camera.black_level {black:g} leaves the brightest count {hi} below preprocess.dark_threshold "
-                     f"{dark_threshold:g} of full scale: black_level is in counts of the declared bit_depth {bits} "
-                     f"(full scale {full}); lower it")
-        else:
-            cause = f"all frames are dark: {dark_hint} — lights off, lens cap, exposure too short?"
+        cause = dark_capture_cause(capture, hi, dark_threshold, "preprocess.dark_threshold")
     elif n_sat == n:
-        top = _saturation_count(bits)
+        top = saturation_count(bits)
         clipped = reduce_mask_to_superpixels(torch.from_numpy(capture.frames >= top), "any")  # (K, H, W) at margin 0
         if margin > 0 and not bool(clipped[obs].all()):
             cause = (f"preprocess.saturation_margin_counts {margin} leaves no count below the saturation level "

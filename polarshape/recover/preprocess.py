@@ -25,12 +25,12 @@ is taken (``sample_at``) and how (``demosaic``):
   directional lights ignore where the point is (L and E are then zero-stride ``expand`` views of
   (K, 1, 1, 3) and (K, 1, 1): no memory per pixel); point lights (1/r² fall-off) need the points,
   unknown before recovery, so :func:`preprocess_capture` takes ``points`` (H, W, 3).
+- ``view`` (H, W, 3) unit directions surface → camera
+  (:meth:`polarshape.cameras.PerspectiveCamera.pixel_view_directions` of the super-pixel camera).
 
 Memory: the frames are converted and demosaiced one light at a time, so beyond the outputs
 preprocessing holds one frame's float64 intermediates (~0.35 GB at 2448 × 2048) and a few (K, H, W)
 float64 maps.
-- ``view`` (H, W, 3) unit directions surface → camera
-  (:meth:`polarshape.cameras.PerspectiveCamera.pixel_view_directions` of the super-pixel camera).
 """
 
 from __future__ import annotations
@@ -47,7 +47,7 @@ from polarshape.brdf.geometry import sensor_plane_basis, sensor_plane_stokes
 from polarshape.cameras import SAMPLE_SITES, Camera, camera_from_spec
 from polarshape.imaging.demosaic import stokes_from_mosaic
 from polarshape.imaging.mosaic import MosaicLayout, split_mosaic
-from polarshape.imaging.pixels import counts_to_float, max_count, reduce_mask_to_superpixels
+from polarshape.imaging.pixels import counts_to_float, max_count, reduce_mask_to_superpixels, saturation_count
 from polarshape.io.capture import Capture
 from polarshape.recover.diagnose import check_observations
 from polarshape.recover.observations import RecoveryInputs
@@ -194,9 +194,7 @@ def preprocess_capture(
 
 def _saturated(frames: np.ndarray, bit_depth: int, margin: int, demosaic: str) -> Tensor:
     """(*, H, W) bool observations of frames (*, 2H, 2W) with a site at the top count (less ``margin``)."""
-    # a 16-bit format carrying a 12-bit ADC (the IMX250MZR's PolarizeMono16) tops out at 4095·16 =
-    # 65520, not 65535: the last 12-bit step counts as saturated
-    top = (max_count(bit_depth) if bit_depth < 16 else 65520) - int(margin)
+    top = saturation_count(bit_depth) - int(margin)
     saturated = reduce_mask_to_superpixels(torch.from_numpy(frames.astype(np.int64) >= top), "any")  # (*, H, W)
     if demosaic == "bilinear":  # interpolation reaches one block further: so does a clipped site
         lead, hw = saturated.shape[:-2], saturated.shape[-2:]

@@ -4,13 +4,13 @@
 from __future__ import annotations
 
 import warnings
+from collections.abc import Callable
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 import torch
-import yaml
 
 from polarshape.errors import CaptureError, OutputExistsError, SuspiciousInputWarning
 from polarshape.imaging.pixels import counts_to_float
@@ -27,8 +27,6 @@ from polarshape.normals import recover_capture, recover_normals
 from polarshape.recover.options import RecoveryOptions
 from polarshape.recover.preprocess import preprocess_capture, superpixel_stokes
 
-REPO = Path(__file__).resolve().parents[2]
-SPHERE = REPO / "configs" / "scenes" / "sphere.yaml"
 
 #: DiLiGenT (x right, y up, z toward the viewer) → ours (x right, y down, z into the scene), written
 #: out here rather than taken from the package, so that a wrong conversion there cannot cancel out.
@@ -328,18 +326,9 @@ def test_diligent_import_needs_a_folder(tmp_path: Path) -> None:
 
 
 @pytest.fixture(scope="module")
-def sphere_capture(tmp_path_factory: pytest.TempPathFactory) -> Capture:
+def sphere_capture(tmp_path_factory: pytest.TempPathFactory, render_sphere: Callable[..., Path]) -> Capture:
     """The shipped (polarising, FMBRDF) sphere at 64×64 raw pixels (32×32 super-pixels), 8 lights."""
-    from polarshape.acquisition.simulated import SimulatedCamera
-
-    folder = tmp_path_factory.mktemp("sphere")
-    scene = yaml.safe_load(SPHERE.read_text())
-    scene["camera"].update(width=64, height=64, pixel_size_m=4.4e-4)
-    scene["lights"] = scene["lights"][:8]
-    (folder / "scene.yaml").write_text(yaml.safe_dump(scene))
-    with SimulatedCamera(folder / "scene.yaml", seed=3) as camera:
-        camera.render_capture(folder / "capture", progress=False)
-    return load_capture(folder / "capture")
+    return load_capture(render_sphere(tmp_path_factory.mktemp("sphere"), width=64, pixel_size_m=4.4e-4, lights=8, seed=3))
 
 
 def _superpixel_s0(capture: Capture) -> np.ndarray:
