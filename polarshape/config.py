@@ -132,6 +132,11 @@ class PreprocessConfig(_Strict):
         "centre", description="where in each 2x2 block the normals are estimated: the block centre, or one site "
         "(e.g. top_left, the IMX250MZR's 90 degree site)"
     )
+    polarisation_check: bool = Field(
+        True, description="refuse frames without the polarisation signal a raw mosaic of an object carries (a "
+        "demosaiced or plain image saved as a frame; polarshape.recover.diagnose.check_polarisation_signal); "
+        "false for raw mosaics of an unpolarised scene"
+    )
 
     @model_validator(mode="after")
     def _site_needs_bilinear(self) -> PreprocessConfig:
@@ -160,7 +165,14 @@ class IntegrationConfig(_Strict):
 class MeshConfig(_Strict):
     """Meshes from the depth map (grid) and, optionally, screened Poisson reconstruction."""
 
-    colors: Literal["albedo", "none"] = Field("albedo", description="vertex colours of mesh.ply/mesh.obj")
+    frame: Literal["opengl", "opencv"] = Field(
+        "opengl", description="frame of mesh.ply/mesh.obj/mesh_poisson.ply: opengl = x right, y up, z toward the "
+        "viewer (what Blender, MeshLab, three.js show upright and facing you); opencv = the camera frame (x right, "
+        "y down, z into the scene, like normals.npy and depth.npy)"
+    )
+    colors: Literal["albedo", "none"] = Field(
+        "albedo", description="vertex colours of mesh.ply/mesh.obj/mesh_poisson.ply"
+    )
     obj: bool = Field(True, description="also write mesh.obj")
     poisson: bool = Field(False, description="also write mesh_poisson.ply (open3d screened Poisson)")
     poisson_depth: int = Field(8, ge=4, le=12, description="Poisson octree depth")
@@ -168,16 +180,20 @@ class MeshConfig(_Strict):
         True, description="true: close the one-view surface with its mirror image behind it (a watertight solid); "
         "false: trim the surface Poisson extrapolates away from the data (an open surface)"
     )
+    repair: bool = Field(
+        True, description="clean mesh_poisson.ply with open3d (merge vertices closer than 1 % of an edge, drop "
+        "degenerate/duplicated triangles and non-manifold edges): removes Poisson's self-intersecting slivers"
+    )
 
 
 class ExportConfig(_Strict):
-    """Result-file options."""
+    """Result-file options (normal_map.png is 16-bit RGBA, alpha 0 outside the mask)."""
 
     normal_convention: Literal["opencv", "opengl"] = Field(
         "opencv", description="normal_map.png convention: opencv = camera frame (x right, y down, z forward); "
         "opengl = x right, y up, z toward the viewer"
     )
-    exr: bool = Field(True, description="write normals.exr (float32 OpenEXR)")
+    exr: bool = Field(True, description="write normals.exr (float32 OpenEXR, channels R, G, B = normal, A = mask)")
 
 
 class ReportConfig(_Strict):

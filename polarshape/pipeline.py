@@ -58,7 +58,7 @@ from polarshape.recover.observations import RecoveryInputs
 from polarshape.recover.preprocess import capture_camera, preprocess_capture
 from polarshape.report import ReportData, write_report
 from polarshape.surface.integrate import IntegrationReport, integrate_normals
-from polarshape.surface.mesh import depth_to_mesh, poisson_mesh, write_mesh
+from polarshape.surface.mesh import FRAME_AXES, MESH_FRAMES, depth_to_mesh, mesh_file_checks, poisson_mesh, write_mesh
 
 logger = logging.getLogger(__name__)
 
@@ -207,6 +207,10 @@ def _object_mask(capture: Capture, config: RunConfig, log: _StageLog) -> np.ndar
     return mask
 
 
+#: What the integration stage records when an orthographic run has no pixel size (depth, meshes in super-pixels).
+_NO_METRIC_SCALE = "metric scale: no integration.pixel_size_m, depth in super-pixel units"
+
+
 def _pixel_size(capture: Capture, config: RunConfig, log: _StageLog) -> float | None:
     """Orthographic: metres per super-pixel — the config's, else the simulated scene's, else 1
     (super-pixel units). Perspective: None (the intrinsics set the scale)."""
@@ -218,7 +222,7 @@ def _pixel_size(capture: Capture, config: RunConfig, log: _StageLog) -> float | 
     raw = (scene.get("scene") or {}).get("camera", {}).get("pixel_size_m") if isinstance(scene, dict) else None
     if isinstance(raw, (int, float)) and raw > 0:
         return 2.0 * float(raw)  # a super-pixel spans two raw pixels
-    log.skip("integration", "metric scale: no integration.pixel_size_m, depth in super-pixel units")
+    log.skip("integration", _NO_METRIC_SCALE)
     return 1.0
 
 
@@ -227,6 +231,9 @@ def preprocess(capture: Capture, config: RunConfig, log: _StageLog, *, device: s
     """The recovery's inputs and the super-pixel camera (block centres) the surface is built with.
 
     Point lights are placed from the plane z = ``integration.reference_depth_m`` (no depth exists yet).
+    Frames without a polarisation signal (a demosaiced or plain image saved as a frame) are refused
+    unless ``preprocess.polarisation_check`` is false
+    (:func:`polarshape.recover.diagnose.check_polarisation_signal`).
     """
     mask = _object_mask(capture, config, log)
     camera = capture_camera(capture, "centre", _pixel_size(capture, config, log))
@@ -237,8 +244,10 @@ def preprocess(capture: Capture, config: RunConfig, log: _StageLog, *, device: s
     inputs = preprocess_capture(
         dataclasses.replace(capture, mask=mask), dtype=dtype, device=device, dark_threshold=options.dark_threshold,
         saturation_margin=options.saturation_margin_counts, points=points, demosaic=options.demosaic,
-        sample_at=options.sample_at,
+        sample_at=options.sample_at, polarisation_check=options.polarisation_check,
     )
+    if not options.polarisation_check:
+        log.skip("preprocess", "polarisation check off (preprocess.polarisation_check: false)")
     return inputs, camera
 
 
@@ -259,23 +268,26 @@ def integrate(result: NormalsResult, camera: Camera, config: RunConfig) -> Surfa
     return Surface(depth, camera, report)
 
 
-def _mirror_closure(points: np.ndarray, normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _mirror_closure(points: np.ndarray, normals: np.ndarray, colours: np.ndarray | None = None
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """Close a one-view surface into a solid: add its mirror image across the plane z = z_max.
 
     The plane through the deepest visible point (for a sphere: its silhouette, the equator) turns the
     visible shell and its mirror into one closed oriented point set, whose Poisson surface is
-    watertight. Points and normals (N, 3), camera frame; returns (2N, 3) each.
+    watertight. Points and normals (N, 3), camera frame, colours (N, ...) or None; returns (2N, ...)
+    each, the mirror image with the colours of the points it mirrors.
     """
     plane = float(points[:, 2].max())
     back = points.copy()
     back[:, 2] = 2.0 * plane - back[:, 2]
     back_normals = normals.copy()
     back_normals[:, 2] = -back_normals[:, 2]
-    return np.concatenate([points, back]), np.concatenate([normals, back_normals])
+    both_colours = None if colours is None else np.concatenate([colours, colours])
+    return np.concatenate([points, back]), np.concatenate([normals, back_normals]), both_colours
 
 
 def _vertex_colours(albedo: np.ndarray | None, surface: Surface, config: RunConfig, log: _StageLog) -> np.ndarray | None:
-    """Albedo scaled to [0, 1] by its 99th percentile, or None."""
+    """Albedo scaled to [0, 1] by its 99th percentile ((H, W) or (H, W, 3)), or None."""
     if config.mesh.colors != "albedo":
         return None
     if albedo is None:
@@ -285,26 +297,62 @@ def _vertex_colours(albedo: np.ndarray | None, surface: Surface, config: RunConf
     return np.clip(np.nan_to_num(albedo / max(float(top), 1e-12)), 0.0, 1.0)
 
 
+def _mesh_units(surface: Surface, log: _StageLog) -> tuple[str, str]:
+    """(units, where the scale comes from) of the meshes: ``metres``, or ``superpixels`` when an
+    orthographic run had no pixel size (:func:`_pixel_size` recorded that it fell back to 1)."""
+    if surface.camera.projection != "orthographic":
+        return "metres", "perspective intrinsics; absolute scale from integration.reference_depth_m"
+    if f"integration: {_NO_METRIC_SCALE}" in log.skipped:
+        return "superpixels", "no metric scale: integration.pixel_size_m unset (x, y, z in super-pixels)"
+    return "metres", f"orthographic, {surface.camera.pixel_size_m:.6g} m per super-pixel"
+
+
+def _poisson(work: Path, normals: np.ndarray, colours: np.ndarray | None, surface: Surface, config: RunConfig,
+             frame: str, units: str) -> dict[str, Any]:
+    """mesh_poisson.ply (albedo-coloured points, mirror-closed with ``mesh.watertight``); returns open3d's
+    verdict on the file as written, what the repair removed, and the time of each step."""
+    t0 = time.perf_counter()
+    pts = surface.camera.unproject(surface.depth)[surface.mask]  # (N, 3)
+    nrm = normals[surface.mask].astype(np.float64)  # (N, 3)
+    cols = None if colours is None else colours[surface.mask]  # (N,) or (N, 3)
+    if config.mesh.watertight:
+        pts, nrm, cols = _mirror_closure(pts, nrm, cols)
+    poisson = poisson_mesh(pts, nrm, depth=config.mesh.poisson_depth, colors=cols, watertight=config.mesh.watertight,
+                           repair=config.mesh.repair)
+    path = write_mesh(poisson, work / "mesh_poisson.ply", frame=frame, units=units)
+    t1 = time.perf_counter()
+    checks = mesh_file_checks(path)  # vertices, triangles, watertight, ... of the file
+    return {
+        **checks, "colours": poisson.visual.kind == "vertex", "mirror_closed": config.mesh.watertight,
+        "octree_depth": config.mesh.poisson_depth, "repair": poisson.metadata.get("repair"),
+        "timings_s": {"reconstruct_and_write": t1 - t0, "checks": time.perf_counter() - t1},
+    }
+
+
 def build_meshes(work: Path, result: NormalsResult, surface: Surface, config: RunConfig, log: _StageLog) -> dict[str, Any]:
-    """mesh.ply (+ mesh.obj) of the depth map and, with ``mesh.poisson``, mesh_poisson.ply; returns their sizes."""
+    """mesh.ply (+ mesh.obj) of the depth map and, with ``mesh.poisson``, mesh_poisson.ply, all in
+    ``mesh.frame`` with the units in their headers; returns params.json's ``mesh`` section (frame,
+    units, sizes, open3d's checks of mesh_poisson.ply)."""
     normals = to_numpy(result.normals)
     colours = _vertex_colours(to_numpy(result.albedo), surface, config, log)
+    frame = config.mesh.frame
+    units, scale = _mesh_units(surface, log)
     mesh = depth_to_mesh(surface.depth, surface.mask, camera=surface.camera, normals=normals, colors=colours)
-    info: dict[str, Any] = {"vertices": len(mesh.vertices), "faces": len(mesh.faces)}
-    write_mesh(mesh, work / "mesh.ply")
+    info: dict[str, Any] = {
+        "frame": frame, "axes": FRAME_AXES[frame], "from_camera_frame": MESH_FRAMES[frame].tolist(), "units": units,
+        "scale": scale, "files": ["mesh.ply"], "vertices": len(mesh.vertices), "faces": len(mesh.faces),
+    }
+    write_mesh(mesh, work / "mesh.ply", frame=frame, units=units)
     if config.mesh.obj:
-        write_mesh(mesh, work / "mesh.obj")
+        write_mesh(mesh, work / "mesh.obj", frame=frame, units=units)
+        info["files"].append("mesh.obj")
     if not config.mesh.poisson:
         log.skip("mesh", "mesh_poisson.ply: mesh.poisson is false")
         return info
-    pts = surface.camera.unproject(surface.depth)[surface.mask]  # (N, 3)
-    nrm = normals[surface.mask].astype(np.float64)  # (N, 3)
-    if config.mesh.watertight:
-        pts, nrm = _mirror_closure(pts, nrm)
-    poisson = poisson_mesh(pts, nrm, depth=config.mesh.poisson_depth, watertight=config.mesh.watertight)
-    write_mesh(poisson, work / "mesh_poisson.ply")
-    info["poisson"] = {"vertices": len(poisson.vertices), "faces": len(poisson.faces),
-                       "watertight": bool(poisson.is_watertight)}
+    info["poisson"] = _poisson(work, normals, colours, surface, config, frame, units)
+    info["files"].append("mesh_poisson.ply")
+    if config.mesh.watertight and not info["poisson"]["watertight"]:
+        logger.warning("mesh_poisson.ply is not watertight by open3d's checks: see mesh.poisson in params.json")
     return info
 
 
@@ -375,7 +423,7 @@ def _capture_source(capture: Capture, config: RunConfig, work: Path, out: Path) 
 def _params(config: RunConfig, capture: Capture, inputs: RecoveryInputs, result: NormalsResult, surface: Surface,
             mesh_info: dict[str, Any], metrics: dict[str, Any], device: str, work: Path, out: Path) -> dict[str, Any]:
     """The content of params.json (format :data:`polarshape.io.results.RESULT_FORMAT`)."""
-    if config.mesh.poisson and "poisson" in mesh_info:
+    if config.mesh.poisson and "poisson" in mesh_info:  # open3d's verdict on the written file
         metrics["mesh_poisson_watertight"] = mesh_info["poisson"]["watertight"]
     pixel_size = getattr(surface.camera, "pixel_size_m", None)
     return {

@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 import torch
 
-from polarshape.cli import main
-from polarshape.imaging.mosaic import MosaicLayout, mosaic_from_stokes
+from polarshape.cli import build_parser, main
+from polarshape.imaging.mosaic import MAKER_ANGLES, MosaicLayout, mosaic_from_stokes
 from polarshape.imaging.pixels import float_to_counts
 from polarshape.io.images import write_image
 
@@ -49,3 +49,9 @@ def test_inspect_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> N
     cv2.imwrite(str(rgb), np.zeros((8, 8, 3), dtype=np.uint8))
     assert main(["inspect", str(rgb), "--bit-depth", "8"]) == 2
     assert "single-channel" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("angles", MAKER_ANGLES)
+def test_inspect_offers_every_angle_convention(angles: str) -> None:
+    args = build_parser().parse_args(["inspect", "frame.png", "--angles", angles])
+    assert args.angles == angles

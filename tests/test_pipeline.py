@@ -5,8 +5,10 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 import torch
@@ -111,8 +113,11 @@ def test_end_to_end_simulated_capture(simulated_run: tuple[Path, dict]) -> None:
     assert (normals[mask][:, 2] < 0).all()  # camera-facing: n_z < 0 (spec §1)
     png = read_normal_map_png(out / "normal_map.png")
     assert np.allclose(png[mask], normals[mask], atol=2e-4) and np.isnan(png[~mask]).all()
-    exr, _ = read_exr(out / "normals.exr")
-    assert np.allclose(exr[mask], normals[mask])
+    alpha = cv2.imread(str(out / "normal_map.png"), cv2.IMREAD_UNCHANGED)[..., 3]  # 16-bit BGRA
+    assert alpha.dtype == np.uint16 and np.array_equal(alpha, np.where(mask, 65535, 0))
+    exr, names = read_exr(out / "normals.exr")
+    assert names == ("R", "G", "B", "A") and np.allclose(exr[mask][:, :3], normals[mask])
+    assert np.array_equal(exr[..., 3], mask.astype(np.float32)) and np.all(exr[~mask] == 0)
     assert read_image(out / "mask.png").astype(bool).sum() == mask.sum()
     filled = read_image(out / "filled.png").astype(bool)  # lambertian too: pixels without data are marked
     assert filled.shape == mask.shape and params["capture"]["filled_pixels"] == int(filled.sum()) < 0.05 * mask.sum()
@@ -132,14 +137,32 @@ def test_end_to_end_simulated_capture(simulated_run: tuple[Path, dict]) -> None:
     assert metrics["depth"]["rmse"] == pytest.approx(check["rmse"], rel=1e-3)
     assert 0.5 < check["scale"] < 1.5  # metric depth from the scene's pixel size
 
-    # meshes: one grid vertex per mask pixel, with normals and albedo colours; closed Poisson solid
+    # meshes: one grid vertex per mask pixel, with normals and albedo colours, in the opengl frame
+    # (default): the camera frame turned by diag(1, -1, -1), faces toward the viewer at +z
     mesh = trimesh.load(out / "mesh.ply", process=False)
     assert len(mesh.vertices) == mask.sum() == params["mesh"]["vertices"]
     assert len(mesh.faces) > 1.8 * mask.sum()
     assert mesh.visual.vertex_colors.shape == (mask.sum(), 4)
+    assert params["mesh"]["frame"] == "opengl" and params["mesh"]["units"] == "metres"
+    assert params["mesh"]["from_camera_frame"] == [[1, 0, 0], [0, -1, 0], [0, 0, -1]]
+    np.testing.assert_allclose(mesh.vertices[:, 2], -depth[mask], rtol=1e-6)  # float32 in the file
+    assert np.all(mesh.face_normals[:, 2] > 0) and np.all(mesh.vertex_normals[:, 2] > 0)
+    assert b"comment polarshape units: metres\n" in (out / "mesh.ply").read_bytes()[:1000]
+    assert "# polarshape frame: opengl" in (out / "mesh.obj").read_text()[:1000]
     assert len(trimesh.load(out / "mesh.obj", process=False).vertices) == mask.sum()
+    # Poisson solid: albedo colours, and params.json's flags are open3d's verdict on the file
+    import open3d as o3d
+
     poisson = trimesh.load(out / "mesh_poisson.ply", process=False)
-    assert poisson.is_watertight and params["mesh"]["poisson"]["watertight"]
+    assert poisson.visual.vertex_colors.shape == (len(poisson.vertices), 4)
+    assert np.ptp(poisson.visual.vertex_colors[:, 0].astype(int)) > 0 and params["mesh"]["poisson"]["colours"]
+    written = o3d.io.read_triangle_mesh(str(out / "mesh_poisson.ply"))
+    flags = params["mesh"]["poisson"]
+    assert flags["watertight"] == written.is_watertight() == params["metrics"]["mesh_poisson_watertight"]
+    assert flags["self_intersecting"] == written.is_self_intersecting()
+    assert flags["edge_manifold"] == written.is_edge_manifold()
+    assert flags["vertex_manifold"] == written.is_vertex_manifold()
+    assert flags["watertight"] and flags["triangles"] == len(poisson.faces)  # the mirror-closed sphere, repaired
 
     # albedo map, params.json, report
     albedo = np.load(out / "albedo.npy")
@@ -158,6 +181,40 @@ def test_end_to_end_simulated_capture(simulated_run: tuple[Path, dict]) -> None:
     assert params["capture"]["source"] == str(out / "capture")  # not the temporary .partial-* folder
     assert params["warnings"] == []
     assert not list(out.parent.glob(".result.partial-*"))
+
+
+def test_mesh_frame_opencv_units_and_an_open_poisson_surface(capture_config: Path, tmp_path: Path) -> None:
+    import open3d as o3d
+
+    config = _load(capture_config)
+    mesh = config.mesh.model_copy(update={"frame": "opencv", "poisson": True, "poisson_depth": 6, "watertight": False})
+    result = run_pipeline(config.model_copy(update={"mesh": mesh}), tmp_path / "res")
+    out, info = result.out_dir, result.params["mesh"]
+    assert info["frame"] == "opencv" and info["files"] == ["mesh.ply", "mesh_poisson.ply"]
+    grid = trimesh.load(out / "mesh.ply", process=False)  # the camera frame as it is: faces toward −z
+    depth = np.load(out / "depth.npy")[read_image(out / "mask.png") > 0]
+    np.testing.assert_allclose(grid.vertices[:, 2], depth, rtol=1e-6)
+    assert np.all(grid.face_normals[:, 2] < 0)
+    assert b"comment polarshape frame: opencv: x right, y down" in (out / "mesh_poisson.ply").read_bytes()[:1000]
+    # a trimmed (open) Poisson surface is not watertight, and params.json says so
+    written = o3d.io.read_triangle_mesh(str(out / "mesh_poisson.ply"))
+    assert info["poisson"]["boundary_edges"] > 0 and not info["poisson"]["mirror_closed"]
+    assert info["poisson"]["watertight"] is written.is_watertight() is False
+    assert info["poisson"]["self_intersecting"] == written.is_self_intersecting()
+    assert result.params["metrics"]["mesh_poisson_watertight"] is False
+
+
+def test_meshes_without_a_metric_scale_say_superpixels(small_capture: Path, tmp_path: Path) -> None:
+    """An orthographic capture with no pixel size anywhere (no integration.pixel_size_m, no scene in
+    its ground truth): depth and meshes are in super-pixels, and the files and params.json say so."""
+    bare = tmp_path / "bare"
+    shutil.copytree(small_capture, bare)
+    (bare / "ground_truth" / "scene.json").unlink()
+    config = _load(_config(tmp_path, input={"type": "capture", "path": str(bare)}, mesh={"obj": False},
+                           report={"enabled": False}, export={"exr": False}, recovery={"model": "lambertian"}))
+    result = run_pipeline(config, tmp_path / "res")
+    assert result.params["mesh"]["units"] == "superpixels"
+    assert b"comment polarshape units: super-pixels (no metric scale" in (result.out_dir / "mesh.ply").read_bytes()[:1000]
 
 
 def test_cli_prints_summary_and_refuses_existing_folder(capture_config: Path, tmp_path: Path, capsys) -> None:

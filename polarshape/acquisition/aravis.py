@@ -19,7 +19,7 @@ What it takes care of:
 - 16-bit GigE Vision frame ids that wrap (…, 65535, 1, …): ``Frame.metadata["frame_count"]`` is a
   monotonic 64-bit count (it also advances over dropped frames).
 
-Frames arrive as (H, W) ``uint16`` mosaics in sensor counts (see :mod:`.pixel_formats`).
+Frames arrive as (H, W) ``uint16`` mosaics in sensor counts (see :mod:`polarshape.imaging.pixel_formats`).
 """
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ from types import TracebackType
 from typing import Any, Literal
 
 from polarshape.acquisition.camera import CameraError, Frame
-from polarshape.acquisition.pixel_formats import format_name_of, payload_size, unpack_mosaic
+from polarshape.imaging.pixel_formats import format_name_of, payload_size, unpack_mosaic
 from polarshape.imaging.pixels import PIXEL_FORMATS
 
 logger = logging.getLogger(__name__)

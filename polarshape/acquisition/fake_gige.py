@@ -41,7 +41,7 @@ from typing import Any
 import numpy as np
 
 from polarshape.acquisition.camera import CameraError, Frame
-from polarshape.acquisition.pixel_formats import format_name_of, pack_mosaic, payload_size
+from polarshape.imaging.pixel_formats import format_name_of, pack_mosaic, payload_size
 from polarshape.imaging.pixels import PIXEL_FORMATS
 
 logger = logging.getLogger(__name__)

@@ -62,6 +62,7 @@ __all__ = [
     "average_frames",
     "capture_session",
     "load_session_config",
+    "refuse_capture_destination",
     "run_capture_session",
     "saturated_fraction",
 ]
@@ -226,6 +227,24 @@ def _frame_metadata(frames: Sequence[Frame], extra: Mapping[str, Any]) -> dict[s
     }
 
 
+def refuse_capture_destination(out_dir: str | Path, *, resume: bool) -> None:
+    """Refuse, before any camera is opened, a capture folder a session without ``resume`` may not
+    write into: its capture.yaml exists, or its ``frames/`` already holds frames. (With ``resume``,
+    :func:`run_capture_session` decides once it knows the lights: a complete capture is returned
+    as it is, an incomplete one with a capture.yaml is refused.)
+
+    Raises:
+        OutputExistsError: as above, naming the file and the fix.
+    """
+    out = Path(out_dir)
+    frames_dir, capture_yaml = out / "frames", out / "capture.yaml"
+    if capture_yaml.exists() and not resume:
+        raise OutputExistsError(f"{capture_yaml} already exists; choose another --out folder")
+    if not resume and frames_dir.exists() and any(frames_dir.iterdir()):
+        raise OutputExistsError(f"{frames_dir} already holds frames; pass resume=True to continue that "
+                                "session, or choose another output folder")
+
+
 def run_capture_session(
     camera: Camera,
     rig: LightRig,
@@ -292,9 +311,7 @@ def run_capture_session(
             logger.info("%s is complete; nothing to capture", capture_yaml)
             return capture_yaml
         raise OutputExistsError(f"{capture_yaml} already exists; choose another --out folder")
-    if not resume and frames_dir.exists() and any(frames_dir.iterdir()):
-        raise OutputExistsError(f"{frames_dir} already holds frames; pass resume=True to continue that "
-                                "session, or choose another output folder")
+    refuse_capture_destination(out, resume=resume)
     identity = session_identity(rig, frames_per_light=frames_per_light, exposure_bracket=exposure_bracket,
                                 settings=settings)
     if not (resume and _check_resume(frames_dir, identity, n)):
@@ -480,6 +497,7 @@ def capture_session(
     from polarshape.acquisition.lights import ManualLightRig, SerialLightRig, SimulatedLightRig
 
     config = load_session_config(session_yaml)
+    refuse_capture_destination(out_dir, resume=resume)  # before the camera is opened or the scene loaded
     cam_cfg, rig_cfg = config.camera, config.rig
     with ExitStack() as stack:
         camera: Any

@@ -9,9 +9,15 @@ Sub-commands (one ``_cmd_<name>(args) -> int`` each, registered in :func:`build_
 * ``run``, ``capture``, ``calibrate``, ``import`` — see :mod:`polarshape.cli.run`,
   :mod:`polarshape.cli.acquisition` and :mod:`polarshape.cli.importing`.
 
+Every command takes ``-v``/``--verbose`` (count: ``-vv`` is debug) and ``-q``/``--quiet`` (no
+progress bars) before or after its name, and the counts add up (``polarshape -v run cfg.yaml -v``
+is ``-vv``): :func:`add_output_options` puts them on every parser of the tree
+(:func:`iter_commands`), and :func:`output_options` reads them back.
+
 Handlers do not catch errors: :func:`polarshape.cli.errors.reports_errors` turns every error a user
 can cause into ``error: <message>`` and the exit status (0 success, 1 refused, 2 invalid input, 3
-cannot run, 130 Ctrl-C, 143 SIGTERM; the table ends every ``--help``).
+cannot run, 130 Ctrl-C, 143 SIGTERM; the table ends every ``--help``). Ctrl-C in any command is
+one line on stderr (the command's ``interrupted`` default, else :data:`INTERRUPTED_MESSAGE`).
 """
 
 from __future__ import annotations
@@ -31,7 +37,17 @@ from polarshape import __version__
 from polarshape.cli.errors import EXIT_STATUS_HELP, reports_errors
 from polarshape.errors import PolarshapeWarning
 
+__all__ = ["INTERRUPTED_MESSAGE", "add_output_options", "build_parser", "iter_commands", "main", "output_options"]
+
 logger = logging.getLogger(__name__)
+
+#: What Ctrl-C prints (exit status 130) unless the command sets its own ``interrupted`` default.
+INTERRUPTED_MESSAGE = "error: interrupted (Ctrl-C); nothing half-written was kept"
+
+#: Destination of the ``-v`` count given at depth ``N`` of the command tree (``polarshape`` is 0,
+#: ``run`` 1, ``calibrate lights`` 2): a sub-parser parses into a namespace of its own and copies it
+#: over its parent's, so one shared destination would keep only the innermost count.
+_VERBOSE_DEST = "verbose_given_at_depth_{}"
 
 
 @reports_errors()
@@ -59,8 +75,7 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
         out, capture.num_lights, capture.frames.shape[2], capture.frames.shape[1], capture.bit_depth,
         int(mask.sum()) if mask is not None else 0,
     )
-    if not args.quiet:
-        print(f"wrote {out} ({capture.num_lights} frames)")
+    print(f"wrote {out} ({capture.num_lights} frames)")  # the one-line result, with -q too
     return 0
 
 
@@ -108,14 +123,52 @@ class _HelpFormatter(argparse.HelpFormatter):
         )
 
 
+def iter_commands(parser: argparse.ArgumentParser) -> Iterator[tuple[tuple[str, ...], argparse.ArgumentParser]]:
+    """Every parser of the command tree, each once, parents before children: ``((), top)``,
+    ``(("run",), run)``, …, ``(("calibrate", "lights"), lights)``."""
+    seen: set[int] = set()
+
+    def walk(path: tuple[str, ...], current: argparse.ArgumentParser) -> Iterator[tuple[tuple[str, ...], argparse.ArgumentParser]]:
+        if id(current) in seen:  # an alias names a parser already listed
+            return
+        seen.add(id(current))
+        yield path, current
+        for action in current._actions:  # noqa: SLF001 - argparse keeps its sub-parsers there
+            if isinstance(action, argparse._SubParsersAction):  # noqa: SLF001
+                for name, sub in action.choices.items():
+                    yield from walk((*path, name), sub)
+
+    yield from walk((), parser)
+
+
+def add_output_options(parser: argparse.ArgumentParser, depth: int) -> None:
+    """Give ``parser`` (at ``depth`` in the command tree: 0 for ``polarshape`` itself) ``-v/--verbose``
+    and ``-q/--quiet``. Both default to ``argparse.SUPPRESS``: given nowhere, they leave no value, so
+    an inner parser never resets what an outer one set; :func:`output_options` combines them.
+    A parser that has them already (a sub-command module may add them itself) is left as it is."""
+    if getattr(parser, "polarshape_output_options", False):
+        return
+    parser.polarshape_output_options = True  # type: ignore[attr-defined]
+    group = parser.add_argument_group("output")
+    where = "" if depth == 0 else "; also accepted before the command"
+    group.add_argument("-v", "--verbose", action="count", dest=_VERBOSE_DEST.format(depth), default=argparse.SUPPRESS,
+                       help=f"more log output: -v info, -vv debug (counts add up wherever given{where})")
+    group.add_argument("-q", "--quiet", action="store_true", default=argparse.SUPPRESS,
+                       help=f"no progress bars; errors, warnings and the one-line result are still printed{where}")
+
+
+def output_options(args: argparse.Namespace) -> tuple[int, bool]:
+    """The ``-v`` count (summed over every place it was given) and whether ``-q`` was given anywhere."""
+    prefix = _VERBOSE_DEST.format("")
+    verbose = sum(int(value) for name, value in vars(args).items() if name.startswith(prefix))
+    return verbose, bool(getattr(args, "quiet", False))
+
+
 def _with_exit_status_help(parser: argparse.ArgumentParser) -> None:
     """End ``parser``'s help, and every sub-command's, with the exit-status table."""
-    parser.epilog = EXIT_STATUS_HELP
-    parser.formatter_class = _HelpFormatter
-    for action in parser._actions:  # noqa: SLF001 - argparse keeps its sub-parsers there
-        if isinstance(action, argparse._SubParsersAction):  # noqa: SLF001
-            for sub in action.choices.values():
-                _with_exit_status_help(sub)
+    for _, each in iter_commands(parser):
+        each.epilog = EXIT_STATUS_HELP
+        each.formatter_class = _HelpFormatter
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -124,7 +177,6 @@ def build_parser() -> argparse.ArgumentParser:
         prog="polarshape",
         description="Shape and reflectance from polarisation images. Start with: polarshape run configs/default.yaml",
     )
-    parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv for debug)")
     parser.add_argument("--version", action="version", version=f"polarshape {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
@@ -146,7 +198,6 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--gain-db", type=float, default=None, help="analogue gain, dB (default: the scene's)")
     sim.add_argument("--pixel-format", default=None, help="e.g. PolarizeMono8, PolarizeMono12, PolarizeMono16")
     sim.add_argument("--device", default="cpu", help="torch device for rendering (cpu, cuda, ...)")
-    sim.add_argument("-q", "--quiet", action="store_true", help="no progress bar or summary")
     sim.set_defaults(handler=_cmd_simulate)
 
     demo = sub.add_parser(
@@ -172,8 +223,11 @@ def build_parser() -> argparse.ArgumentParser:
     insp.add_argument("--roi", type=int, nargs=4, metavar=("X", "Y", "W", "H"), help="region in mosaic pixels")
     insp.add_argument("--layout", type=int, nargs=4, metavar=("TL", "TR", "BL", "BR"),
                       help="maker's polariser labels of the 2x2 block (default 90 45 135 0, the IMX250MZR)")
+    # polarshape.imaging.mosaic.MAKER_ANGLES, written out so that parsing does not import torch
     insp.add_argument("--angles", default="counterclockwise_on_screen",
-                      choices=["counterclockwise_on_screen", "clockwise_on_screen"], help="direction of the maker's labels")
+                      choices=["counterclockwise_on_screen", "clockwise_on_screen", "polanalyser"],
+                      help="how the labels are measured: the maker's direction (default), ours (y down), or as "
+                      "the polanalyser library labels them (the maker's)")
     insp.set_defaults(handler=_cmd_inspect)
 
     from polarshape.cli.acquisition import add_parsers as add_acquisition_parsers
@@ -182,6 +236,8 @@ def build_parser() -> argparse.ArgumentParser:
     from polarshape.cli.importing import add_parsers as add_importing_parsers
 
     add_importing_parsers(sub)
+    for path, each in iter_commands(parser):
+        add_output_options(each, len(path))
     _with_exit_status_help(parser)
     return parser
 
@@ -222,18 +278,32 @@ def _warnings_as_messages() -> Iterator[None]:
         yield
 
 
+@contextlib.contextmanager
+def _log_level(verbose: int) -> Iterator[None]:
+    """While the command runs, polarshape's loggers show warnings (default), info (``-v``) or debug
+    (``-vv``); other libraries' stay at warning. The level is restored afterwards (``main`` may be
+    called in-process, e.g. by the tests)."""
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    package = logging.getLogger("polarshape")
+    previous = package.level
+    package.setLevel(logging.WARNING - 10 * min(verbose, 2))
+    try:
+        yield
+    finally:
+        package.setLevel(previous)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line; returns the process exit status (0 = success, 1 = refused, 2 = invalid
     input, 3 = cannot run (a stage failed, the disk is full or not writable, no CUDA), 130 =
     interrupted by Ctrl-C, 143 = by SIGTERM; see :mod:`polarshape.cli.errors`)."""
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    level = logging.WARNING - 10 * min(args.verbose, 2)
-    logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
-    try:
-        with _exit_on_sigterm(), _warnings_as_messages():
+    args: argparse.Namespace | None = None
+    try:  # Ctrl-C while the parser is built (it imports the sub-command modules) is one line too
+        args = build_parser().parse_args(argv)
+        args.verbose, args.quiet = output_options(args)
+        with _log_level(args.verbose), _exit_on_sigterm(), _warnings_as_messages():
             return int(args.handler(args))
     except KeyboardInterrupt:
         # the finally blocks have run: no half-written output is left; a message, not a traceback
-        print("error: interrupted (Ctrl-C); nothing half-written was kept", file=sys.stderr)
+        print(getattr(args, "interrupted", INTERRUPTED_MESSAGE), file=sys.stderr)
         return 130

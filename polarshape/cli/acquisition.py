@@ -76,7 +76,9 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     cap.add_argument("session", help="session YAML file (see configs/sessions/)")
     cap.add_argument("--out", required=True, help="capture folder to write")
     cap.add_argument("--no-resume", action="store_true", help="do not reuse frames already in --out")
-    cap.set_defaults(handler=_cmd_capture)
+    # Ctrl-C keeps the frames saved so far, on purpose: the same command resumes
+    cap.set_defaults(handler=_cmd_capture, interrupted="error: interrupted (Ctrl-C); the frames captured so far are "
+                     "kept: run the same command again to capture the rest")
 
     cal = sub.add_parser("calibrate", help="calibrate light directions (mirror sphere) or camera intrinsics (ChArUco)")
     cal_sub = cal.add_subparsers(dest="what", required=True, metavar="WHAT")

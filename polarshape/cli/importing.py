@@ -4,7 +4,14 @@
   — a DiLiGenT-style folder → a capture folder (:func:`polarshape.io.importers.import_diligent`);
 * ``import lights FILE --frame opencv|diligent --capture CAPTURE`` — a light file (``x y z`` per
   line, or RTI ``.lp``) → the light directions of an existing capture's ``capture.yaml``
-  (:func:`polarshape.io.importers.set_capture_light_directions`).
+  (:func:`polarshape.io.importers.set_capture_light_directions`);
+* ``import stack SRC --out CAPTURE --lights FILE --light-frame opencv|diligent [--angles ...]
+  [--bit-depth N] [--intensities FILE] [--overwrite]`` — demosaiced polariser images (0/45/90/135
+  per light) → a capture folder (:func:`polarshape.io.importers.import_stack`);
+* ``import arena FRAMES... --out CAPTURE --lights FILE --light-frame opencv|diligent
+  [--pixel-format F] [--width W --height H] [--black-level N] [--overwrite]`` — frames saved by
+  Lucid's Arena SDK / ArenaView (``.raw``, 16-bit TIFF/PNG) → a capture folder
+  (:func:`polarshape.io.importers.import_arena`).
 
 Exit status as every command (:mod:`polarshape.cli.errors`): 0 success, 1 refused (``--out``
 exists, or is the source), 2 invalid input (a malformed file, a count mismatch).
@@ -47,8 +54,40 @@ def _cmd_import_lights(args: argparse.Namespace) -> int:
     return 0
 
 
+@reports_errors()
+def _cmd_import_stack(args: argparse.Namespace) -> int:
+    from polarshape.io.importers import import_stack
+
+    capture = import_stack(args.src, args.out, lights=args.lights, light_frame=args.light_frame,
+                           light_format=args.light_format, intensities=args.intensities, angles=args.angles,
+                           bit_depth=args.bit_depth, overwrite=args.overwrite)
+    k, h, w = capture.frames.shape
+    print(f"wrote {args.out} ({k} lights, {w // 2}x{h // 2} pixels, {capture.bit_depth}-bit, labels {args.angles}"
+          f"{', mask' if capture.mask is not None else ''}); run it with preprocess.demosaic: superpixel")
+    return 0
+
+
+@reports_errors()
+def _cmd_import_arena(args: argparse.Namespace) -> int:
+    from polarshape.io.importers import import_arena
+
+    frames = args.frames[0] if len(args.frames) == 1 else args.frames
+    capture = import_arena(frames, args.out, lights=args.lights, light_frame=args.light_frame,
+                           light_format=args.light_format, intensities=args.intensities,
+                           pixel_format=args.pixel_format, width=args.width, height=args.height,
+                           black_level=args.black_level,
+                           intrinsics=None if args.intrinsics is None else tuple(args.intrinsics),
+                           overwrite=args.overwrite)
+    for note in capture.ground_truth["source"]["notes"]:
+        print(f"note: {note}")
+    k, h, w = capture.frames.shape
+    print(f"wrote {args.out} ({k} frames, {w}x{h} raw pixels, {capture.bit_depth}-bit, "
+          f"{capture.spec.camera.projection})")
+    return 0
+
+
 def add_parsers(sub: Any) -> None:
-    """Register ``import`` (``diligent``, ``lights``) on the top-level sub-parsers."""
+    """Register ``import`` (``diligent``, ``lights``, ``stack``, ``arena``) on the top-level sub-parsers."""
     imp = sub.add_parser(
         "import",
         help="convert data you already have (DiLiGenT-style folders, light files) into a capture",
@@ -90,3 +129,66 @@ def add_parsers(sub: Any) -> None:
     lig.add_argument("--format", choices=("auto", "xyz", "lp"), default="auto",
                      help="file format (default auto: .lp -> lp, else xyz)")
     lig.set_defaults(handler=_cmd_import_lights)
+
+    stk = kinds.add_parser(
+        "stack",
+        help="demosaiced polariser images (0/45/90/135 per light) + a light file -> a capture folder",
+        description="Read SRC, per light either four single-channel images <light>_0.png <light>_45.png "
+        "<light>_90.png <light>_135.png (.tif/.tiff too; angle may be zero-padded, separator _ or -) or one "
+        "<light>.npy ((4, H, W) or (H, W, 4), angles 0, 45, 90, 135) or 4-page <light>.tif; optional mask.png. "
+        "Lights in natural order of <light>. Each pixel becomes one 2x2 super-pixel of the default mosaic "
+        "(IMX250MZR layout), so preprocess.demosaic: superpixel gives back the four values exactly.",
+    )
+    stk.add_argument("src", help="the folder of polariser images (read only)")
+    stk.add_argument("--out", required=True, metavar="CAPTURE", help="capture folder to create")
+    stk.add_argument("--lights", required=True, metavar="FILE",
+                     help="light file: one 'x y z' per line in light order, or RTI .lp naming each <light>")
+    stk.add_argument("--light-frame", choices=_FRAMES, required=True, help=f"frame of the light file. {_FRAME_HELP}")
+    stk.add_argument("--light-format", choices=("auto", "xyz", "lp"), default="auto",
+                     help="light file format (default auto: .lp -> lp, else xyz)")
+    stk.add_argument("--intensities", metavar="FILE", default=None,
+                     help="light intensities, one value (or 'r g b') per line in light order (default: all 1)")
+    stk.add_argument("--angles", choices=("counterclockwise_on_screen", "clockwise_on_screen", "polanalyser"),
+                     default="counterclockwise_on_screen",
+                     help="convention of the labels 0/45/90/135: counterclockwise_on_screen (default; the sensor "
+                     "maker's, camera SDKs'), polanalyser (polanalyser's demosaicing outputs: the maker's "
+                     "direction), clockwise_on_screen (polarshape's: from image x toward image y, down)")
+    stk.add_argument("--bit-depth", type=int, default=None, metavar="N",
+                     help="significant bits of the counts (default 8 or 16 by the files' type; required for "
+                     "float .npy in [0, 1])")
+    stk.add_argument("--overwrite", action="store_true", help="replace an existing --out folder (never the source)")
+    stk.set_defaults(handler=_cmd_import_stack)
+
+    arn = kinds.add_parser(
+        "arena",
+        help="frames saved by Lucid's Arena SDK / ArenaView (.raw, 16-bit TIFF/PNG) + a light file -> a capture",
+        description="Read FRAMES (one folder, its .raw/.tif/.tiff/.png files sorted by name with numbers in "
+        "numeric order, or the frame files in light order) and write a capture folder. .raw files have no header: "
+        "give --pixel-format, --width and --height (the camera's PixelFormat, Width, Height). 16-bit images whose "
+        "counts are all multiples of 16 (largest above 4095) hold 12-bit counts left-shifted by 4: they are "
+        "shifted back and the capture records it. BMP/JPEG and colour images (ArenaView display images) are "
+        "refused, and 8-bit PNG/TIFF unless --pixel-format PolarizeMono8.",
+    )
+    arn.add_argument("frames", nargs="+", metavar="FRAMES", help="a folder of Arena saves, or the frame files")
+    arn.add_argument("--out", required=True, metavar="CAPTURE", help="capture folder to create")
+    arn.add_argument("--lights", required=True, metavar="FILE",
+                     help="light file: one 'x y z' per line in frame order, or RTI .lp naming each frame")
+    arn.add_argument("--light-frame", choices=_FRAMES, required=True, help=f"frame of the light file. {_FRAME_HELP}")
+    arn.add_argument("--light-format", choices=("auto", "xyz", "lp"), default="auto",
+                     help="light file format (default auto: .lp -> lp, else xyz)")
+    arn.add_argument("--intensities", metavar="FILE", default=None,
+                     help="light intensities, one value (or 'r g b') per line in the light file's order (default: "
+                     "all 1)")
+    arn.add_argument("--pixel-format", default=None,
+                     choices=("PolarizeMono8", "PolarizeMono12", "PolarizeMono12p", "PolarizeMono12Packed",
+                              "PolarizeMono16"),
+                     help="the camera's PixelFormat: required for .raw; for images, PolarizeMono8 accepts an 8-bit "
+                     "save and PolarizeMono12 says 16-bit values are 12-bit counts")
+    arn.add_argument("--width", type=int, default=None, metavar="W", help="frame width in pixels (.raw)")
+    arn.add_argument("--height", type=int, default=None, metavar="H", help="frame height in pixels (.raw)")
+    arn.add_argument("--black-level", type=float, default=0.0, metavar="N",
+                     help="dark counts, in counts of the imported bit depth (after any shift; default 0)")
+    arn.add_argument("--intrinsics", type=float, nargs=4, default=None, metavar=("FX", "FY", "CX", "CY"),
+                     help="pinhole intrinsics in raw-mosaic pixels (perspective camera; default orthographic)")
+    arn.add_argument("--overwrite", action="store_true", help="replace an existing --out folder (never a source)")
+    arn.set_defaults(handler=_cmd_import_arena)

@@ -5,6 +5,19 @@ A raw mosaic of size (2H, 2W) holds H×W super-pixels; the site (i, j) ∈ {0, 1
 Angles are in OUR convention (spec fmbrdf.md §1): in the image plane, from image x (right) toward
 image y (down). Makers label the IMX250MZR filters counter-clockwise as seen on screen,
 [[90, 45], [135, 0]]; a maker's angle a is our angle −a (mod 180°), i.e. [[90, 135], [45, 0]].
+
+Conventions a label can be given in (:data:`MAKER_ANGLES`, ``camera.mosaic.angles``):
+
+- ``clockwise_on_screen`` — ours: from image x toward image y (down); label a = our angle a;
+- ``counterclockwise_on_screen`` — the sensor makers': from image x toward image *up*; label a =
+  our angle −a (mod 180°);
+- ``polanalyser`` — the angles as the polanalyser library labels them: its
+  ``demosaicing(raw, COLOR_PolarMono)`` returns ``[img_000, img_045, img_090, img_135]`` taken from
+  the IMX250MZR sites (row, column) (1, 1), (0, 1), (0, 0), (1, 0) — the maker's labels — and its
+  ``calcStokes`` / ``cvtStokesToAoLP`` use them as angles from x, so its angles run
+  counter-clockwise on screen: the same as ``counterclockwise_on_screen`` (label a = our −a).
+  Hence, for the same pixels: ``S0_pa = s0``, ``S1_pa = s1``, ``S2_pa = −s2``, ``DoLP_pa = DoLP``,
+  ``AoLP_pa = (π − AoLP) mod π`` (its AoLP is ours mirrored about image x).
 """
 
 from __future__ import annotations
@@ -23,6 +36,7 @@ from polarshape.imaging.stokes import intensities_from_stokes
 
 __all__ = [
     "CHANNEL_ANGLES_DEG",
+    "MAKER_ANGLES",
     "MakerAngles",
     "MosaicLayout",
     "channel_angles_rad",
@@ -30,14 +44,16 @@ __all__ = [
     "check_mosaic_shape",
     "mosaic_from_intensities",
     "mosaic_from_stokes",
+    "our_angle_deg",
     "split_mosaic",
 ]
 
 #: Polariser angles (degrees, our convention) of the four channels of a ``(*, 4, H, W)`` stack.
 CHANNEL_ANGLES_DEG: tuple[float, float, float, float] = (0.0, 45.0, 90.0, 135.0)
 
-MakerAngles = Literal["counterclockwise_on_screen", "clockwise_on_screen"]
-_MAKER_ANGLES = ("counterclockwise_on_screen", "clockwise_on_screen")
+#: Conventions of polariser angle labels (module docstring): the maker's, ours, polanalyser's.
+MakerAngles = Literal["counterclockwise_on_screen", "clockwise_on_screen", "polanalyser"]
+MAKER_ANGLES: tuple[str, ...] = ("counterclockwise_on_screen", "clockwise_on_screen", "polanalyser")
 
 Angles2x2 = tuple[tuple[float, float], tuple[float, float]]
 
@@ -67,6 +83,26 @@ def _normalise_deg(a: float) -> float:
     if math.isclose(a, 180.0, abs_tol=1e-9):
         a = 0.0
     return a + 0.0  # turn -0.0 into 0.0
+
+
+def _label_sign(angles: str) -> float:
+    """+1 for labels measured as ours (x toward y down), −1 for counter-clockwise on screen."""
+    if angles not in MAKER_ANGLES:
+        raise ValueError(f"mosaic angles must be one of {MAKER_ANGLES}; got {angles!r}")
+    return 1.0 if angles == "clockwise_on_screen" else -1.0
+
+
+def our_angle_deg(label_deg: float, angles: MakerAngles) -> float:
+    """Our angle (degrees in [0, 180), from image x toward image y) of a polariser labelled
+    ``label_deg`` in the convention ``angles`` (module docstring).
+
+    Example:
+        >>> our_angle_deg(45, "counterclockwise_on_screen"), our_angle_deg(45, "polanalyser")
+        (135.0, 135.0)
+        >>> our_angle_deg(45, "clockwise_on_screen")
+        45.0
+    """
+    return _normalise_deg(_label_sign(angles) * float(label_deg))
 
 
 @dataclass(frozen=True)
@@ -111,20 +147,17 @@ class MosaicLayout:
 
         Args:
             layout: 2×2 maker labels in degrees, top row then bottom row.
-            angles: ``"counterclockwise_on_screen"`` (maker's angle a is our −a mod 180°) or
+            angles: ``"counterclockwise_on_screen"`` (maker's angle a is our −a mod 180°),
+                ``"polanalyser"`` (polanalyser's labels: the same as the maker's) or
                 ``"clockwise_on_screen"`` (already our y-down convention).
         """
         values = _as_2x2(layout, "mosaic layout")
-        if angles not in _MAKER_ANGLES:
-            raise ValueError(f"mosaic angles must be one of {_MAKER_ANGLES}; got {angles!r}")
-        sign = -1.0 if angles == "counterclockwise_on_screen" else 1.0
+        sign = _label_sign(angles)
         return cls(tuple(tuple(_normalise_deg(sign * a) for a in row) for row in values))  # type: ignore[arg-type]
 
     def to_maker(self, angles: MakerAngles = "counterclockwise_on_screen") -> Angles2x2:
         """The maker-style labels of this layout (inverse of :meth:`from_maker`)."""
-        if angles not in _MAKER_ANGLES:
-            raise ValueError(f"mosaic angles must be one of {_MAKER_ANGLES}; got {angles!r}")
-        sign = -1.0 if angles == "counterclockwise_on_screen" else 1.0
+        sign = _label_sign(angles)
         return tuple(tuple(_normalise_deg(sign * a) for a in row) for row in self.angles_deg)  # type: ignore[return-value]
 
     def shifted(self, offset_x: int, offset_y: int) -> MosaicLayout:

@@ -8,6 +8,7 @@ level subtraction: ``(counts - black_level) / (2**bit_depth - 1 - black_level)``
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Literal, TypeVar
 
 import numpy as np
@@ -19,6 +20,7 @@ from polarshape.checks import check_shape, to_numpy
 __all__ = [
     "saturation_count",
     "BIT_DEPTHS",
+    "left_shift_of",
     "PIXEL_FORMATS",
     "bit_depth_of",
     "check_bit_depth",
@@ -72,6 +74,38 @@ def saturation_count(bit_depth: int) -> int:
     carrying a 12-bit ADC (the IMX250MZR's PolarizeMono16) tops out at 4095 · 16 = 65520, not
     65535, so the last 12-bit step counts as saturated."""
     return max_count(bit_depth) if bit_depth < 16 else 65520
+
+
+def left_shift_of(frames: np.ndarray | Sequence[np.ndarray]) -> int:
+    """Bits by which 16-bit counts look stored **high-bit aligned**: 4 for 12-bit counts (as the
+    IMX250MZR's PolarizeMono16 and 16-bit saves of PolarizeMono12 hold them), 6 for 10-bit, 8 for
+    8-bit; 0 when they are not.
+
+    Counts are taken as shifted by ``s`` when the largest is above 4095 (low-bit aligned 12-bit
+    counts never are), every count is a multiple of ``2**s`` and they are not all equal (a flat
+    frame cannot tell). Judged over all ``frames`` together; an evenly spread sample of 4096 counts
+    is looked at first, so ordinary 16-bit data cost almost nothing.
+
+    Args:
+        frames: ``uint16`` counts of any shape, or a sequence of such arrays (e.g. K frames (H, W)).
+
+    Returns:
+        0, 4, 6 or 8.
+    """
+    arrays = [np.asarray(frames)] if isinstance(frames, np.ndarray) else [np.asarray(f) for f in frames]
+    arrays = [a.reshape(-1) for a in arrays if a.size]
+    if not arrays:
+        return 0
+    if any(int(np.bitwise_or.reduce(a[:: max(1, a.size // 4096)])) & 0xF for a in arrays):
+        return 0
+    hi = max(int(a.max()) for a in arrays)
+    if hi <= 4095 or min(int(a.min()) for a in arrays) == hi:
+        return 0
+    bits_set = 0
+    for a in arrays:
+        bits_set |= int(np.bitwise_or.reduce(a))
+    zeros = (bits_set & -bits_set).bit_length() - 1  # low zero bits common to every count
+    return next((s for s in (8, 6, 4) if zeros >= s), 0)
 
 
 def _check_black_level(black_level: float, bit_depth: int) -> float:

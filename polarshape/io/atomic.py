@@ -108,7 +108,8 @@ def _make_folder(folder: Path, target: Path) -> None:
         folder.mkdir(parents=True, exist_ok=True)
 
 
-def _check_destination(path: Path, overwrite: bool) -> None:
+def check_destination(path: Path, overwrite: bool) -> None:
+    """Refuse an existing ``path`` unless ``overwrite`` (:class:`OutputExistsError`, exit status 1)."""
     if path.exists() and not overwrite:
         raise OutputExistsError(
             f"{path} already exists; refusing to overwrite it (pass overwrite=True / --overwrite, "
@@ -128,7 +129,7 @@ def atomic_path(path: str | os.PathLike[str], *, overwrite: bool = False) -> Ite
         ...     np.save(tmp, normals)
     """
     path = Path(path)
-    _check_destination(path, overwrite)
+    check_destination(path, overwrite)
     _make_folder(path.parent, path)
     with _named_write_errors(path):
         fd, tmp_name = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=path.parent)
@@ -147,7 +148,7 @@ def atomic_path(path: str | os.PathLike[str], *, overwrite: bool = False) -> Ite
             raise error from exc
         if not tmp.exists():
             raise OSError(f"the writer removed its temporary file; nothing was written to {path}")
-        _check_destination(path, overwrite)
+        check_destination(path, overwrite)
         os.replace(tmp, path)
     finally:
         if tmp.exists():
@@ -215,8 +216,8 @@ def atomic_directory(
     path = Path(path).absolute()
     reason = protect(path) if protect is not None else None
     if reason:
-        raise OutputExistsError(f"{path}: {reason}; refusing to write a result there")
-    _check_destination(path, overwrite)
+        raise OutputExistsError(f"{path}: {reason}; refusing to write there")
+    check_destination(path, overwrite)
     _make_folder(path.parent, path)
     remove_stale_partials(path)
     with _named_write_errors(path):
@@ -235,7 +236,7 @@ def atomic_directory(
             if error is None:
                 raise
             raise error from exc
-        _check_destination(path, overwrite)
+        check_destination(path, overwrite)
         if path.exists():
             old = path.with_name(f".{path.name}.old-{os.getpid()}")
             os.replace(path, old)

@@ -18,6 +18,7 @@ import json
 import logging
 import math
 import os
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
 from collections.abc import Callable
@@ -27,9 +28,9 @@ import numpy as np
 import yaml
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from polarshape.errors import CaptureError
-from polarshape.imaging.mosaic import CHANNEL_ANGLES_DEG, MosaicLayout
-from polarshape.imaging.pixels import BIT_DEPTHS, max_count, reduce_mask_to_superpixels
+from polarshape.errors import CaptureError, SuspiciousInputWarning
+from polarshape.imaging.mosaic import CHANNEL_ANGLES_DEG, MakerAngles, MosaicLayout
+from polarshape.imaging.pixels import BIT_DEPTHS, left_shift_of, max_count, reduce_mask_to_superpixels
 from polarshape.io.atomic import atomic_directory, atomic_write_text
 from polarshape.io.images import IMAGE_SUFFIXES, ImageError, read_image, write_image
 from polarshape.io.yamlfile import load_yaml
@@ -95,10 +96,16 @@ class IntrinsicsSpec(_Strict):
 
 
 class MosaicSpec(_Strict):
-    """The polariser mosaic as the maker labels it (converted to our convention by :meth:`layout`)."""
+    """The polariser mosaic as the maker labels it (converted to our convention by :meth:`to_layout`).
+
+    ``angles`` says how the labels of ``layout`` are measured (:mod:`polarshape.imaging.mosaic`):
+    ``counterclockwise_on_screen`` (the maker's), ``clockwise_on_screen`` (ours: x toward y down),
+    or ``polanalyser`` (as the polanalyser library labels them — the maker's direction, so the same
+    layout as ``counterclockwise_on_screen``; polanalyser's S2 and AoLP are then −s2 and π − AoLP).
+    """
 
     layout: tuple[tuple[float, float], tuple[float, float]] = ((90.0, 45.0), (135.0, 0.0))
-    angles: Literal["counterclockwise_on_screen", "clockwise_on_screen"] = "counterclockwise_on_screen"
+    angles: MakerAngles = "counterclockwise_on_screen"
 
     @field_validator("layout")
     @classmethod
@@ -345,6 +352,24 @@ def _check_counts(image: np.ndarray, bit_depth: int, where: str) -> None:
         )
 
 
+def _check_alignment(frames: np.ndarray, where: str) -> None:
+    """16-bit frames (K, H, W) holding high-bit aligned counts of a shallower ADC: fine for 12-bit
+    (the IMX250MZR's PolarizeMono16; saturation is taken at 65520), a warning for 10 or 8 bits,
+    whose clipped sites would not be flagged as saturated."""
+    shift = left_shift_of(frames)
+    if shift == 4:
+        logger.info("%s: 12-bit counts stored high-bit aligned (multiples of 16, as PolarizeMono16): clipping is "
+                    "taken at 65520", where)
+    elif shift:
+        bits = 16 - shift
+        warnings.warn(SuspiciousInputWarning(
+            f"{where}: every count is a multiple of {1 << shift} and the largest is {int(frames.max())}: these look "
+            f"like {bits}-bit counts left-shifted by {shift} (high-bit aligned) declared camera.bit_depth 16, so "
+            f"sites clipped at {max_count(bits) << shift} are not flagged as saturated (16-bit clipping is taken at "
+            f"65520). Fix: shift the frames right by {shift} and set camera.bit_depth: {bits}, or re-import the "
+            "source with `polarshape import arena` (which does both and records it)"), stacklevel=3)
+
+
 def _mask_to_superpixels(mask: np.ndarray, frame_hw: tuple[int, int], where: str) -> np.ndarray:
     h, w = frame_hw
     if mask.ndim != 2:
@@ -531,6 +556,8 @@ def load_capture(path: str | os.PathLike[str]) -> Capture:
             )
     frames = np.stack([image.astype(np.uint16, copy=False) for image in images])
     _check_frames(spec, frames, str(root / spec.lights[0].frame))
+    if bit_depth == 16:
+        _check_alignment(frames, str(root / "frames"))
     mask = None
     mask_path = root / MASK_FILE
     if mask_path.exists():
@@ -552,6 +579,15 @@ def _spec_to_yaml(spec: CaptureSpec) -> str:
     return yaml.safe_dump(data, sort_keys=False, default_flow_style=None, allow_unicode=True)
 
 
+def _not_a_capture(path: Path) -> str | None:
+    """Why ``overwrite`` may not replace ``path``: it exists and is neither a capture nor empty."""
+    if not path.exists() or (path / CAPTURE_YAML).is_file() or (path.is_dir() and not any(path.iterdir())):
+        return None
+    kind = "folder" if path.is_dir() else "file"
+    return (f"this {kind} is not a capture (no {CAPTURE_YAML}), and overwrite only replaces captures; choose "
+            "another folder or remove it yourself")
+
+
 def write_capture(path: str | os.PathLike[str], capture: Capture, *, overwrite: bool = False) -> Path:
     """Write a capture folder atomically (nothing appears at ``path`` until it is complete).
 
@@ -563,15 +599,19 @@ def write_capture(path: str | os.PathLike[str], capture: Capture, *, overwrite: 
     Args:
         path: the folder to create.
         capture: what to write (validated first).
-        overwrite: replace an existing folder at ``path``.
+        overwrite: replace an existing capture folder (one holding capture.yaml) or an empty
+            folder at ``path`` — never any other folder or file.
 
     Returns:
         The folder written.
+
+    Raises:
+        OutputExistsError: ``path`` exists and ``overwrite`` is False, or it is not a capture.
     """
     _check_capture(capture)
     spec = capture.spec
     eight_bit = spec.camera.bit_depth == 8
-    with atomic_directory(path, overwrite=overwrite) as tmp:
+    with atomic_directory(path, overwrite=overwrite, protect=_not_a_capture if overwrite else None) as tmp:
         for light, frame in zip(spec.lights, capture.frames):
             write_image(tmp / light.frame, frame.astype(np.uint8 if eight_bit else np.uint16))
         if capture.mask is not None:

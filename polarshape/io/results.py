@@ -1,8 +1,9 @@
 """The result folder of ``polarshape run``: its files, its params.json, and what it may replace.
 
 Files (spec capture-format.md, README "Result folder"): ``normals.npy`` (H, W, 3) float32 camera-frame
-unit normals, NaN outside the mask; ``normal_map.png`` (16-bit, convention in params.json);
-``normals.exr``; ``albedo.npy`` / ``albedo.png``; ``depth.npy``; ``mask.png``; ``filled.png``;
+unit normals, NaN outside the mask; ``normal_map.png`` (16-bit RGBA, alpha 0 outside the mask,
+convention in params.json); ``normals.exr`` (float32 R, G, B = normal, A = mask); ``albedo.npy`` /
+``albedo.png``; ``depth.npy``; ``mask.png``; ``filled.png``;
 ``config.yaml``; ``params.json`` (format :data:`RESULT_FORMAT`, with the polarshape version).
 Meshes and the report are written by their own stages into the same (temporary) folder.
 """
@@ -18,7 +19,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from polarshape.io.export import write_exr, write_normal_map_png, write_npy, write_scalar_map_png
+from polarshape.io.export import write_normal_map_png, write_normals_exr, write_npy, write_scalar_map_png
 from polarshape.io.atomic import atomic_write_text
 from polarshape.io.images import write_image
 
@@ -37,13 +38,15 @@ def write_maps(
     Args:
         normals: (H, W, 3) float normals, NaN outside the mask. mask: (H, W) bool.
         depth: (H, W) camera-frame z, NaN outside. albedo: (H, W) or None. filled: (H, W) bool or None.
-        normal_convention: ``opencv`` or ``opengl`` (normal_map.png). exr: also write normals.exr.
+        normal_convention: ``opencv`` or ``opengl`` (normal_map.png, 16-bit RGBA, alpha 0 outside the
+        mask). exr: also write normals.exr (RGBA: A = 1 inside the mask, 0 outside).
     """
     skipped: list[str] = []
+    shown = np.where(mask[..., None], normals, np.nan)  # (H, W, 3): background = outside the mask
     write_npy(normals.astype(np.float32), folder / "normals.npy")
-    write_normal_map_png(normals, folder / "normal_map.png", convention=normal_convention)
+    write_normal_map_png(shown, folder / "normal_map.png", convention=normal_convention)
     if exr:
-        write_exr(normals.astype(np.float32), folder / "normals.exr")
+        write_normals_exr(normals, folder / "normals.exr", mask)
     else:
         skipped.append("normals.exr: export.exr is false")
     write_npy(depth.astype(np.float32), folder / "depth.npy")

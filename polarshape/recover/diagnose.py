@@ -12,6 +12,20 @@ Refused with a :class:`~polarshape.errors.CaptureError` that names the cause and
 - frames that do not change with the light (s0 the same in every light to a few quantisation steps
   at every pixel: one frame written K times, a light rig that did not switch).
 
+Refused by :func:`check_polarisation_signal` (run by ``polarshape run`` after preprocessing unless
+``preprocess.polarisation_check: false``):
+
+- frames without the polarisation a raw mosaic of an object always carries: a single demosaiced
+  polariser image (or a plain intensity image) saved as a frame is read as a mosaic whose four
+  sites are four neighbouring pixels of one smooth image, and the 2×2 estimate turns the image's
+  gradient into a made-up polarisation (a user measured a DoLP of 0.0006 and an AoLP 100° off).
+  The bilinear demosaic is exact on linear intensity fields, so such frames have almost no
+  bilinear s1, s2, whereas an object's diffuse and specular polarisation survive it:
+  :func:`polarisation_dolp` is a high percentile of the DoLP of the bilinear Stokes vectors,
+  averaged over small windows of usable observations (the noise averages out, the signal does
+  not). Plain intensity frames stored as four equal sites (``polarshape import diligent``) have
+  DoLP exactly 0 by design and pass.
+
 Warned (:class:`~polarshape.errors.SuspiciousInputWarning`; the run goes on):
 
 - two lights at one place (directions < 0.5° apart, positions < 1 mm apart), two bit-identical frames;
@@ -28,10 +42,12 @@ import warnings
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
 from polarshape.errors import CaptureError, SuspiciousInputWarning
-from polarshape.imaging.pixels import max_count, reduce_mask_to_superpixels, saturation_count
+from polarshape.imaging.demosaic import stokes_from_mosaic
+from polarshape.imaging.pixels import counts_to_float, max_count, reduce_mask_to_superpixels, saturation_count
 from polarshape.io.capture import Capture
 from polarshape.lights import DirectionalLight, PointLight
 from polarshape.recover.observations import RecoveryInputs
@@ -40,7 +56,9 @@ from polarshape.recover.priors import MIN_OBSERVATIONS
 logger = logging.getLogger(__name__)
 
 __all__ = ["CONSTANT_STEPS", "DUPLICATE_ANGLE_DEG", "DUPLICATE_DISTANCE_M", "LOW_SIGNAL_FRACTION",
-           "check_observations", "dark_capture_cause"]
+           "POLARISATION_DOLP_MIN", "POLARISATION_LIT_FRACTION", "POLARISATION_MIN_OBSERVATIONS",
+           "POLARISATION_PERCENTILE", "POLARISATION_WINDOW", "check_observations", "check_polarisation_signal",
+           "dark_capture_cause", "is_plain_intensity", "polarisation_dolp"]
 
 #: A pixel whose s0 spreads over at most this many quantisation steps across its usable
 #: observations does not change with the light; every pixel so: the capture is refused.
@@ -51,6 +69,26 @@ DUPLICATE_ANGLE_DEG = 0.5
 DUPLICATE_DISTANCE_M = 1e-3
 #: The brightest count below this fraction of full scale (bit depths above 8): a warning.
 LOW_SIGNAL_FRACTION = 1.0 / 16.0
+
+#: :func:`polarisation_dolp` below this: the frames carry no polarisation signal (refused). Measured
+#: (``python benchmarks/polarisation_check.py``; 99th percentile, 5×5 windows, lit observations):
+#: raw mosaics of simulated polarising spheres (64 and 128 px, three FMBRDF materials, with and
+#: without noise) 0.023 (IOR 1.3, k_s 0.3, no noise) to 0.122, official_sphere128 0.144,
+#: mitsuba_sphere_a020 0.209; the same captures with every frame replaced by one polariser image
+#: upsampled ×2 (OpenCV bilinear) 0.0001–0.0002, by s0 / 2 of the bilinear demosaic 0.0004–0.0033.
+#: Not caught: the full-resolution bilinear demosaic of one polariser (its interpolation pattern
+#: aliases the image's curvature into s1, s2: 0.0033 on mitsuba_sphere_a020, 0.0124 on
+#: official_sphere128, 0.009–0.020 on 32–64-pixel spheres), and noisy simulated unpolarised
+#: (Lambertian) spheres, 0.020–0.023 (noise-free at 128 px: 0.004, refused).
+POLARISATION_DOLP_MIN = 0.01
+#: Side (super-pixels) of the windows the Stokes vectors are averaged over before the DoLP.
+POLARISATION_WINDOW = 5
+#: The percentile of the windowed DoLP over the usable object observations of all frames.
+POLARISATION_PERCENTILE = 99.0
+#: Observations with s0 below this fraction of their frame's 99th-percentile s0 are left out (noise).
+POLARISATION_LIT_FRACTION = 0.2
+#: Fewer usable observations than this: too little to judge; the check passes.
+POLARISATION_MIN_OBSERVATIONS = 64
 
 
 def check_observations(
@@ -256,3 +294,97 @@ def _low_counts(capture: Capture) -> list[str]:
         return [f"camera.bit_depth: the brightest count {hi} is below 1/16 of full scale {full}: "
                 f"{max(hi.bit_length(), 1)}-bit data declared bit_depth {bits}? or exposure far too short"]
     return []
+
+
+# --- polarisation signal -------------------------------------------------------------------------
+
+
+def is_plain_intensity(capture: Capture, region: np.ndarray | None = None) -> bool:
+    """Whether every super-pixel of ``region`` (H, W) bool (default: all) holds four equal sites
+    in every frame: plain intensity data stored on purpose (``polarshape import diligent``)."""
+    f = capture.frames  # (K, 2H, 2W)
+    sites = (f[:, 0::2, 0::2], f[:, 0::2, 1::2], f[:, 1::2, 0::2], f[:, 1::2, 1::2])  # (K, H, W) each
+    equal = (sites[0] == sites[1]) & (sites[0] == sites[2]) & (sites[0] == sites[3])  # (K, H, W)
+    return bool(equal.all() if region is None else equal[:, region].all())
+
+
+def _box_mean(x: Tensor, weight: Tensor, size: int) -> Tensor:
+    """(C, H, W) weighted means over ``size``² windows of ``weight`` (H, W) ≥ 0 (zero-weight pixels
+    left out; a window without weight gives 0)."""
+    pad = size // 2
+    num = F.avg_pool2d((x * weight).unsqueeze(0), size, stride=1, padding=pad, count_include_pad=True)[0]
+    den = F.avg_pool2d(weight[None, None], size, stride=1, padding=pad, count_include_pad=True)[0]
+    return num / den.clamp_min(1e-12)
+
+
+def polarisation_dolp(capture: Capture, valid: Tensor) -> tuple[float, int]:
+    """How polarised the frames are: the :data:`POLARISATION_PERCENTILE` percentile of the DoLP of
+    bilinear-demosaiced Stokes vectors averaged over :data:`POLARISATION_WINDOW`² windows of the
+    usable, lit observations (module docstring).
+
+    Args:
+        capture: frames (K, 2H, 2W) counts, capture.yaml (bit depth, black level, mosaic).
+        valid: (K, H, W) bool usable observations (preprocessing's ``valid``).
+
+    Returns:
+        (DoLP percentile, number of observations it is taken over); (0.0, 0) without observations.
+        One frame at a time: (2H, 2W) float64 intermediates only.
+    """
+    camera = capture.spec.camera
+    values: list[np.ndarray] = []
+    for i in range(capture.frames.shape[0]):
+        v = valid[i].cpu()  # (H, W)
+        if not bool(v.any()):
+            continue
+        mosaic = counts_to_float(capture.frames[i], camera.bit_depth, camera.black_level, dtype=torch.float64)
+        full = stokes_from_mosaic(mosaic, capture.layout, "bilinear")  # (3, 2H, 2W); exact on linear fields
+        stokes = F.avg_pool2d(full.unsqueeze(0), 2)[0]  # (3, H, W) at the block centres
+        s0 = stokes[0]
+        lit = v & (s0 >= POLARISATION_LIT_FRACTION * float(np.percentile(s0[v].numpy(), 99.0)))
+        mean = _box_mean(stokes, lit.to(torch.float64), POLARISATION_WINDOW)  # (3, H, W)
+        dolp = mean[1:].norm(dim=0) / mean[0].clamp_min(1e-12)  # (H, W)
+        values.append(dolp[lit].numpy().astype(np.float32))
+        del mosaic, full, stokes
+    if not values:
+        return 0.0, 0
+    pooled = np.concatenate(values)
+    return float(np.percentile(pooled, POLARISATION_PERCENTILE)), int(pooled.size)
+
+
+def check_polarisation_signal(capture: Capture, inputs: RecoveryInputs) -> float | None:
+    """Refuse frames that carry no polarisation signal (a demosaiced or plain image read as a raw
+    mosaic; module docstring).
+
+    Args:
+        capture: the capture preprocessed (frames (K, 2H, 2W)).
+        inputs: its :class:`RecoveryInputs` (``valid`` (K, H, W), ``mask`` (H, W)).
+
+    Returns:
+        The measured :func:`polarisation_dolp`, or None when not judged: plain intensity frames
+        (four equal sites), or fewer than :data:`POLARISATION_MIN_OBSERVATIONS` usable observations.
+
+    Raises:
+        CaptureError: the DoLP percentile below :data:`POLARISATION_DOLP_MIN`, naming it and the fix.
+    """
+    mask = inputs.mask.cpu().numpy()
+    if is_plain_intensity(capture, mask if mask.any() else None):
+        logger.debug("diagnose: plain intensity frames (four equal sites): no polarisation expected")
+        return None
+    dolp, n = polarisation_dolp(capture, inputs.valid & inputs.mask.unsqueeze(0))
+    if n < POLARISATION_MIN_OBSERVATIONS:
+        logger.debug("diagnose: %d usable observations: too few to judge the polarisation signal", n)
+        return None
+    logger.debug("diagnose: polarisation signal: DoLP p%g %.4g over %d observations", POLARISATION_PERCENTILE, dolp, n)
+    if dolp < POLARISATION_DOLP_MIN:
+        raise CaptureError(
+            f"capture: the frames carry no polarisation signal: the {POLARISATION_PERCENTILE:g}th percentile of the "
+            f"degree of linear polarisation over its {n} usable object observations is {dolp:.4f} (Stokes vectors "
+            f"averaged over {POLARISATION_WINDOW}x{POLARISATION_WINDOW} super-pixels), below {POLARISATION_DOLP_MIN} "
+            "— a raw polarisation mosaic of an object shows more. The frames look like single demosaiced polariser "
+            "images (or plain intensity images) saved as raw mosaics, whose neighbouring pixels would be taken for "
+            "four polarisers: import demosaiced images with `polarshape import stack` (four images 0/45/90/135 per "
+            "light), and plain intensity images with four equal sites per super-pixel (`polarshape import "
+            "diligent`); if the frames really are raw mosaics of an unpolarised scene, set "
+            "preprocess.polarisation_check: false"
+        )
+    return dolp

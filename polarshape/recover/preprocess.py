@@ -49,7 +49,7 @@ from polarshape.imaging.demosaic import stokes_from_mosaic
 from polarshape.imaging.mosaic import MosaicLayout, split_mosaic
 from polarshape.imaging.pixels import counts_to_float, max_count, reduce_mask_to_superpixels, saturation_count
 from polarshape.io.capture import Capture
-from polarshape.recover.diagnose import check_observations
+from polarshape.recover.diagnose import check_observations, check_polarisation_signal
 from polarshape.recover.observations import RecoveryInputs
 
 logger = logging.getLogger(__name__)
@@ -117,6 +117,7 @@ def preprocess_capture(
     mixed_sigma: float | None = 6.0,
     demosaic: str = "bilinear",
     sample_at: str = "centre",
+    polarisation_check: bool = True,
 ) -> RecoveryInputs:
     """Convert a capture to recovery tensors (super-pixel demosaicing, frames, validity).
 
@@ -129,6 +130,8 @@ def preprocess_capture(
         mixed_sigma: observations whose four sites disagree by more than this many noise σ are
             invalid (see :func:`mixed_superpixels`); None keeps them.
         demosaic, sample_at: how and where each block's Stokes vector is estimated (module docstring).
+        polarisation_check: refuse frames without a polarisation signal (a demosaiced or plain
+            image saved as a raw mosaic; :func:`polarshape.recover.diagnose.check_polarisation_signal`).
 
     Returns:
         :class:`RecoveryInputs`.
@@ -188,7 +191,10 @@ def preprocess_capture(
     )
     del stokes
     logger.debug("preprocess: K=%d, %dx%d super-pixels, %d in mask, %d valid observations", k, h, w, int(mask.sum()), int(valid.sum()))
-    check_observations(capture, out, dark=dark, saturated=saturated, dark_threshold=dark_threshold, saturation_margin=saturation_margin, points=points)
+    check_observations(capture, out, dark=dark, saturated=saturated, dark_threshold=dark_threshold,
+                       saturation_margin=saturation_margin, points=points)
+    if polarisation_check:
+        check_polarisation_signal(capture, out)
     return out
 
 

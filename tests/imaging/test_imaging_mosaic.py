@@ -10,10 +10,12 @@ import torch
 
 from polarshape.errors import ShapeError
 from polarshape.imaging.mosaic import (
+    MAKER_ANGLES,
     MosaicLayout,
     channel_angles_rad,
     mosaic_from_intensities,
     mosaic_from_stokes,
+    our_angle_deg,
     split_mosaic,
 )
 from polarshape.imaging.stokes import intensities_from_stokes
@@ -108,3 +110,47 @@ def test_split_rejects_odd_sizes_and_bad_layout() -> None:
         split_mosaic(torch.zeros(4, 4), ((90, 135), (45, 0)))  # type: ignore[arg-type]
     with pytest.raises(ShapeError, match=r"intensities must have shape \(\*, 4, H, W\)"):
         mosaic_from_intensities(torch.zeros(3, 2, 2), MosaicLayout.imx250mzr())
+
+
+# --- polanalyser's labels -------------------------------------------------------------------------
+
+
+def test_our_angle_of_a_label_in_each_convention() -> None:
+    assert MAKER_ANGLES == ("counterclockwise_on_screen", "clockwise_on_screen", "polanalyser")
+    assert [our_angle_deg(a, "clockwise_on_screen") for a in (0, 45, 90, 135)] == [0.0, 45.0, 90.0, 135.0]
+    for angles in ("counterclockwise_on_screen", "polanalyser"):
+        assert [our_angle_deg(a, angles) for a in (0, 45, 90, 135)] == [0.0, 135.0, 90.0, 45.0]  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="polanalyser"):
+        our_angle_deg(45, "pa")  # type: ignore[arg-type]
+
+
+def test_polanalyser_labels_are_the_makers() -> None:
+    imx = [[90, 45], [135, 0]]
+    assert MosaicLayout.from_maker(imx, "polanalyser") == MosaicLayout.imx250mzr()
+    assert MosaicLayout.from_maker(imx, "polanalyser") == MosaicLayout.from_maker([[90, 135], [45, 0]],
+                                                                                  "clockwise_on_screen")
+    assert MosaicLayout.imx250mzr().to_maker("polanalyser") == ((90.0, 45.0), (135.0, 0.0))
+
+
+def test_polanalyser_stokes_and_aolp_against_ours() -> None:
+    """polanalyser on an IMX250MZR mosaic (its documented sites, written out here: 0° at (1, 1), 45° at
+    (0, 1), 90° at (0, 0), 135° at (1, 0); S1 = I0 − I90, S2 = I45 − I135, AoLP = ½ atan2(S2, S1)
+    mod π) against our Stokes: S1 the same, S2 = −s2, DoLP the same, AoLP = π − ours (mod π)."""
+    s = torch.tensor([[1.0, 0.8], [0.6, 0.5]], dtype=torch.float64)  # (2, 2) s0
+    lin = torch.tensor([[[0.3, -0.1], [0.05, 0.0]], [[0.2, 0.25], [-0.3, 0.1]]], dtype=torch.float64)  # (2, 2, 2)
+    stokes = torch.cat([s[None], lin])  # (3, 2, 2): ours
+    raw = mosaic_from_stokes(stokes, MosaicLayout.imx250mzr())  # (4, 4)
+    i000, i045, i090, i135 = raw[1::2, 1::2], raw[0::2, 1::2], raw[0::2, 0::2], raw[1::2, 0::2]
+    s1_pa, s2_pa = i000 - i090, i045 - i135
+    torch.testing.assert_close(s1_pa, stokes[1])
+    torch.testing.assert_close(s2_pa, -stokes[2])
+    aolp_pa = torch.remainder(0.5 * torch.atan2(s2_pa, s1_pa), math.pi)
+    aolp = torch.remainder(0.5 * torch.atan2(stokes[2], stokes[1]), math.pi)
+    # AoLP_pa = π − AoLP (mod π): the same cos 2φ, the opposite sin 2φ
+    torch.testing.assert_close(torch.cos(2 * aolp_pa), torch.cos(2 * aolp))
+    torch.testing.assert_close(torch.sin(2 * aolp_pa), -torch.sin(2 * aolp))
+    assert not torch.allclose(aolp_pa, aolp)
+    # the four images, labelled as polanalyser labels them, are the polarisers at our −label
+    ours = split_mosaic(raw, MosaicLayout.imx250mzr())  # (4, 2, 2) at our 0, 45, 90, 135
+    for label, image in zip((0, 45, 90, 135), (i000, i045, i090, i135)):
+        torch.testing.assert_close(image, ours[round(our_angle_deg(label, "polanalyser") / 45)])

@@ -9,6 +9,7 @@ import torch
 from polarshape.errors import ShapeError
 from polarshape.imaging.pixels import (
     check_bit_depth,
+    left_shift_of,
     counts_to_float,
     dark_mask,
     float_to_counts,
@@ -122,3 +123,14 @@ def test_counts_to_float_float32_is_the_rounded_float64_result_without_an_int64_
     np.testing.assert_array_equal(counts_to_float(torch.from_numpy(raw.astype(np.int32)), 16, black_level).numpy(), expected)
     per_pixel = 8 if black_level == 100.3 else 4  # not exact in float32: float64 first
     assert peak < (per_pixel + 0.5) * raw.size
+
+
+def test_left_shift_is_found_over_all_frames() -> None:
+    rng = np.random.default_rng(5)
+    twelve = rng.integers(0, 4096, size=(2, 16, 16), dtype=np.uint16) << 4
+    assert left_shift_of(twelve) == 4 and left_shift_of(list(twelve)) == 4
+    assert left_shift_of(twelve >> 4) == 0  # low-bit aligned: the largest count stays <= 4095
+    odd = twelve.copy()
+    odd[1, 5, 7] |= 1
+    assert left_shift_of(odd) == 0 and left_shift_of([twelve[0], odd[1]]) == 0
+    assert left_shift_of(np.full((4, 4), 65520, np.uint16)) == 0  # flat: cannot tell

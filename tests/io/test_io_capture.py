@@ -350,3 +350,21 @@ def test_shared_captures(tmp_path: Path, name: str, k: int, hw: tuple[int, int],
     copy = load_capture(write_capture(tmp_path / name, c))
     _assert_same(c, copy)
     shutil.rmtree(tmp_path / name)
+
+
+def test_overwrite_replaces_only_a_capture(tmp_path: Path) -> None:
+    """``write_capture(..., overwrite=True)`` replaces a previous capture or an empty folder, never a
+    folder of something else (e.g. the one holding the scene file being simulated)."""
+    capture = load_capture(write_capture(tmp_path / "cap", _capture()))
+    write_capture(tmp_path / "cap", capture, overwrite=True)  # a capture: replaced
+    (tmp_path / "empty").mkdir()
+    write_capture(tmp_path / "empty", capture, overwrite=True)
+    other = tmp_path / "scenes"
+    other.mkdir()
+    (other / "scene.yaml").write_text("keep me")
+    with pytest.raises(OutputExistsError, match="not a capture .*overwrite only replaces captures"):
+        write_capture(other, capture, overwrite=True)
+    assert (other / "scene.yaml").read_text() == "keep me" and not (other / "capture.yaml").exists()
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(OutputExistsError, match="this file is not a capture"):
+        write_capture(tmp_path / "file", capture, overwrite=True)

@@ -11,8 +11,10 @@ import pytest
 from polarshape.io.export import (
     read_exr,
     read_normal_map_png,
+    read_normals_exr,
     write_exr,
     write_normal_map_png,
+    write_normals_exr,
     write_npy,
     write_scalar_map_png,
 )
@@ -32,8 +34,9 @@ def _normals(h: int = 20, w: int = 30, seed: int = 0) -> np.ndarray:
 
 
 def _raw_rgb(path: Path) -> np.ndarray:
+    """The PNG's channels as stored, in R, G, B(, A) order (OpenCV reads B, G, R(, A))."""
     image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    return image[..., ::-1]
+    return image[..., [2, 1, 0, *range(3, image.shape[2])]]
 
 
 @pytest.mark.parametrize("convention", ["opencv", "opengl"])
@@ -45,14 +48,15 @@ def test_normal_map_round_trip_within_quantisation(tmp_path: Path, convention: s
     assert np.all(np.isnan(back[~valid])) and np.all(np.isfinite(back[valid]))
     assert np.abs(back[valid] - n[valid]).max() <= 1.0 / 65535 + 1e-12
     raw = _raw_rgb(path)
-    assert raw.dtype == np.uint16 and raw.shape == (20, 30, 3)
-    assert np.all(raw[:4, :5] == 0)
+    assert raw.dtype == np.uint16 and raw.shape == (20, 30, 4)
+    assert np.all(raw[:4, :5] == 0)  # background: RGB 0 and alpha 0
+    np.testing.assert_array_equal(raw[..., 3], np.where(valid, 65535, 0))
 
 
 def test_normal_map_conventions_are_the_documented_ones(tmp_path: Path) -> None:
     n = np.array([[[0.0, 0.0, -1.0], [0.0, -0.6, -0.8]]])  # frontal; tilted towards the image top
-    cv = _raw_rgb(write_normal_map_png(n, tmp_path / "cv.png", convention="opencv"))
-    gl = _raw_rgb(write_normal_map_png(n, tmp_path / "gl.png", convention="opengl"))
+    cv = _raw_rgb(write_normal_map_png(n, tmp_path / "cv.png", convention="opencv"))[..., :3]
+    gl = _raw_rgb(write_normal_map_png(n, tmp_path / "gl.png", convention="opengl"))[..., :3]
     # opencv: (n + 1)/2 of the camera frame (y down, z forward): frontal = (½, ½, 0)
     np.testing.assert_array_equal(cv[0, 0], [32768, 32768, 0])
     np.testing.assert_allclose(cv[0, 1], [32768, 0.2 * 65535, 0.1 * 65535], atol=1)
@@ -74,6 +78,49 @@ def test_normal_map_rejects_bad_input(tmp_path: Path) -> None:
         read_normal_map_png(tmp_path / "grey.png")
     with pytest.raises(FileNotFoundError):
         read_normal_map_png(tmp_path / "missing.png")
+
+
+def test_rgb_normal_map_without_alpha_still_reads(tmp_path: Path) -> None:
+    n = _normals()
+    path = write_normal_map_png(n, tmp_path / "rgb.png", convention="opengl", alpha=False)
+    assert _raw_rgb(path).shape == (20, 30, 3)
+    back = read_normal_map_png(path, "opengl")
+    valid = np.all(np.isfinite(n), axis=2)
+    assert np.all(np.isnan(back[~valid])) and np.abs(back[valid] - n[valid]).max() <= 1.0 / 65535 + 1e-12
+
+
+def test_alpha_decides_the_background_of_an_rgba_normal_map(tmp_path: Path) -> None:
+    # alpha 0 with an RGB that would decode as a normal: background; alpha 65535 with RGB 0: the
+    # normal (−1, −1, −1) as written (an RGB file could not tell it from the background)
+    image = np.zeros((2, 2, 4), np.uint16)
+    image[0, 0] = (32768, 32768, 0, 0)
+    image[0, 1] = (0, 0, 0, 65535)
+    image[1, :] = (32768, 32768, 0, 65535)
+    cv2.imwrite(str(tmp_path / "rgba.png"), image[..., [2, 1, 0, 3]])
+    back = read_normal_map_png(tmp_path / "rgba.png")
+    assert np.isnan(back[0, 0]).all()
+    np.testing.assert_allclose(back[0, 1], [-1.0, -1.0, -1.0])
+    np.testing.assert_allclose(back[1], [[0.0, 0.0, -1.0]] * 2, atol=2e-5)
+
+
+def test_normals_exr_has_an_alpha_channel_matching_the_mask(tmp_path: Path) -> None:
+    n = _normals().astype(np.float32)
+    mask = np.all(np.isfinite(n), axis=2)
+    mask[10:12, 10:12] = False  # masked out although the normal is finite
+    write_normals_exr(n, tmp_path / "normals.exr", mask)
+    array, names = read_exr(tmp_path / "normals.exr")
+    assert names == ("R", "G", "B", "A") and array.dtype == np.float32
+    np.testing.assert_array_equal(array[..., 3], mask.astype(np.float32))
+    np.testing.assert_array_equal(array[mask][:, :3], n[mask])
+    assert np.all(array[~mask] == 0)  # associated alpha: no NaN to spread through filters
+    normals, inside = read_normals_exr(tmp_path / "normals.exr")
+    np.testing.assert_array_equal(inside, mask)
+    assert np.isnan(normals[~mask]).all()
+    np.testing.assert_array_equal(normals[mask], n[mask])
+    write_exr(n, tmp_path / "old.exr")  # an RGB file without A: the finite normals are the mask
+    assert np.array_equal(read_normals_exr(tmp_path / "old.exr")[1], np.all(np.isfinite(n), axis=2))
+    with pytest.raises(ValueError, match="mask must have shape"):
+        write_normals_exr(n, tmp_path / "bad.exr", mask[:-1])
 
 
 def test_exr_round_trip_is_exact(tmp_path: Path) -> None:

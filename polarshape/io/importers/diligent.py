@@ -46,9 +46,10 @@ from typing import Any
 import cv2
 import numpy as np
 
-from polarshape.errors import CaptureError, OutputExistsError
+from polarshape.errors import CaptureError
 from polarshape.imaging.pixels import max_count
 from polarshape.io.capture import CAPTURE_FORMAT, Capture, CaptureSpec, write_capture
+from polarshape.io.importers.destination import check_import_destination
 from polarshape.io.importers.lightfiles import LightFrame, check_camera_side, from_diligent_frame, read_light_file
 
 logger = logging.getLogger(__name__)
@@ -205,15 +206,6 @@ def _read_normals(src: Path, shape: tuple[int, int], frame: LightFrame) -> tuple
     return None, None
 
 
-def _check_out(src: Path, out: Path, overwrite: bool) -> None:
-    s, o = src.resolve(), out.resolve()
-    if o == s or o in s.parents:
-        raise OutputExistsError(f"{out}: is, or holds, the source folder {src}; refusing to write the capture there "
-                                "(choose another --out)")
-    if out.exists() and not overwrite:
-        raise OutputExistsError(f"{out} already exists; refusing to overwrite it (pass --overwrite or another --out)")
-
-
 def import_diligent(
     src: str | os.PathLike[str],
     out: str | os.PathLike[str],
@@ -243,7 +235,7 @@ def import_diligent(
     src, out = Path(src), Path(out)
     if not src.is_dir():
         raise CaptureError(f"{src}: not a folder; give a DiLiGenT-style folder (images, {DIRECTIONS_TXT}, …)")
-    _check_out(src, out, overwrite)
+    check_import_destination([src], out, overwrite=overwrite)
     weights = _weights(rgb_weights)
     names = _frame_names(src)
     if not (src / DIRECTIONS_TXT).is_file():

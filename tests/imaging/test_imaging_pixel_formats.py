@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from polarshape.acquisition.pixel_formats import format_name_of, pack_mosaic, payload_size, unpack_mosaic
+from polarshape.imaging.pixel_formats import format_name_of, pack_mosaic, payload_size, unpack_mosaic
 from polarshape.imaging.pixels import PIXEL_FORMATS, bit_depth_of
 
 FORMATS = sorted(PIXEL_FORMATS)

@@ -1,5 +1,9 @@
 """Pack and unpack the raw pixel formats of polarisation cameras (GenICam PFNC).
 
+It is part of ``imaging`` (not ``acquisition``) so that every stage that meets raw bytes uses this
+one codec: the camera backends (GigE Vision streams) and the importers (``.raw`` files saved by
+Lucid's Arena SDK / ArenaView, :mod:`polarshape.io.importers.arena`).
+
 Every format is converted to and from a ``uint16`` array of shape (H, W) holding sensor counts,
 low-bit aligned (values in ``[0, 2**bit_depth - 1]``). The byte layouts:
 
