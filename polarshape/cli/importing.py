@@ -86,6 +86,19 @@ def _cmd_import_arena(args: argparse.Namespace) -> int:
     return 0
 
 
+def _add_light_options(parser: argparse.ArgumentParser, *, order: str, named: str) -> None:
+    """--lights, --light-frame, --light-format, --intensities of an importer that reads images and a light file."""
+    parser.add_argument("--lights", required=True, metavar="FILE",
+                        help=f"light file: one 'x y z' per line in {order}, or RTI .lp naming each {named}")
+    parser.add_argument("--light-frame", choices=_FRAMES, required=True,
+                        help=f"frame of the light file. {_FRAME_HELP}")
+    parser.add_argument("--light-format", choices=("auto", "xyz", "lp"), default="auto",
+                        help="light file format (default auto: .lp -> lp, else xyz)")
+    parser.add_argument("--intensities", metavar="FILE", default=None,
+                        help="light intensities, one value (or 'r g b') per line in the light file's order "
+                        "(default: all 1)")
+
+
 def add_parsers(sub: Any) -> None:
     """Register ``import`` (``diligent``, ``lights``, ``stack``, ``arena``) on the top-level sub-parsers."""
     imp = sub.add_parser(
@@ -141,13 +154,7 @@ def add_parsers(sub: Any) -> None:
     )
     stk.add_argument("src", help="the folder of polariser images (read only)")
     stk.add_argument("--out", required=True, metavar="CAPTURE", help="capture folder to create")
-    stk.add_argument("--lights", required=True, metavar="FILE",
-                     help="light file: one 'x y z' per line in light order, or RTI .lp naming each <light>")
-    stk.add_argument("--light-frame", choices=_FRAMES, required=True, help=f"frame of the light file. {_FRAME_HELP}")
-    stk.add_argument("--light-format", choices=("auto", "xyz", "lp"), default="auto",
-                     help="light file format (default auto: .lp -> lp, else xyz)")
-    stk.add_argument("--intensities", metavar="FILE", default=None,
-                     help="light intensities, one value (or 'r g b') per line in light order (default: all 1)")
+    _add_light_options(stk, order="light order", named="<light>")
     stk.add_argument("--angles", choices=("counterclockwise_on_screen", "clockwise_on_screen", "polanalyser"),
                      default="counterclockwise_on_screen",
                      help="convention of the labels 0/45/90/135: counterclockwise_on_screen (default; the sensor "
@@ -171,14 +178,7 @@ def add_parsers(sub: Any) -> None:
     )
     arn.add_argument("frames", nargs="+", metavar="FRAMES", help="a folder of Arena saves, or the frame files")
     arn.add_argument("--out", required=True, metavar="CAPTURE", help="capture folder to create")
-    arn.add_argument("--lights", required=True, metavar="FILE",
-                     help="light file: one 'x y z' per line in frame order, or RTI .lp naming each frame")
-    arn.add_argument("--light-frame", choices=_FRAMES, required=True, help=f"frame of the light file. {_FRAME_HELP}")
-    arn.add_argument("--light-format", choices=("auto", "xyz", "lp"), default="auto",
-                     help="light file format (default auto: .lp -> lp, else xyz)")
-    arn.add_argument("--intensities", metavar="FILE", default=None,
-                     help="light intensities, one value (or 'r g b') per line in the light file's order (default: "
-                     "all 1)")
+    _add_light_options(arn, order="frame order", named="frame")
     arn.add_argument("--pixel-format", default=None,
                      choices=("PolarizeMono8", "PolarizeMono12", "PolarizeMono12p", "PolarizeMono12Packed",
                               "PolarizeMono16"),
