@@ -331,19 +331,31 @@ def polarisation_dolp(capture: Capture, valid: Tensor) -> tuple[float, int]:
         One frame at a time: (2H, 2W) float64 intermediates only.
     """
     camera = capture.spec.camera
+    valid = valid.cpu()
     values: list[np.ndarray] = []
+    if not bool(valid.any()):
+        return 0.0, 0
+    # only the rows and columns with usable observations (plus the window and the demosaic's reach)
+    rows, cols = torch.nonzero(valid.any(0), as_tuple=True)
+    pad = POLARISATION_WINDOW // 2 + 1
+    r0, r1 = max(int(rows.min()) - pad, 0), int(rows.max()) + pad + 1
+    c0, c1 = max(int(cols.min()) - pad, 0), int(cols.max()) + pad + 1
+    layout = capture.layout  # the crop starts on whole 2×2 blocks: the same layout
     for i in range(capture.frames.shape[0]):
-        v = valid[i].cpu()  # (H, W)
+        v = valid[i, r0:r1, c0:c1]  # (h, w)
         if not bool(v.any()):
             continue
-        mosaic = counts_to_float(capture.frames[i], camera.bit_depth, camera.black_level, dtype=torch.float64)
-        full = stokes_from_mosaic(mosaic, capture.layout, "bilinear")  # (3, 2H, 2W); exact on linear fields
-        stokes = F.avg_pool2d(full.unsqueeze(0), 2)[0]  # (3, H, W) at the block centres
+        raw = capture.frames[i, 2 * r0:2 * r1, 2 * c0:2 * c1]  # (2h, 2w): whole blocks, the layout unchanged
+        # float32: the DoLP is compared with 0.01, far above float32 rounding
+        mosaic = counts_to_float(raw, camera.bit_depth, camera.black_level, dtype=torch.float32)
+        full = stokes_from_mosaic(mosaic, layout, "bilinear")  # (3, 2h, 2w); exact on linear fields
+        stokes = F.avg_pool2d(full.unsqueeze(0), 2)[0]  # (3, h, w) at the block centres
         s0 = stokes[0]
         lit = v & (s0 >= POLARISATION_LIT_FRACTION * float(np.percentile(s0[v].numpy(), 99.0)))
-        mean = _box_mean(stokes, lit.to(torch.float64), POLARISATION_WINDOW)  # (3, H, W)
-        dolp = mean[1:].norm(dim=0) / mean[0].clamp_min(1e-12)  # (H, W)
-        values.append(dolp[lit].numpy().astype(np.float32))
+        mean = _box_mean(stokes, lit.to(torch.float32), POLARISATION_WINDOW)  # (3, h, w)
+        at = mean[:, lit]  # (3, n) the lit observations only
+        dolp = torch.hypot(at[1], at[2]) / at[0].clamp_min(1e-12)  # (n,)
+        values.append(dolp.numpy())
         del mosaic, full, stokes
     if not values:
         return 0.0, 0
