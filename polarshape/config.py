@@ -27,7 +27,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator, model_validator
 
 from polarshape.errors import ConfigError
-from polarshape.io.yamlfile import load_yaml
+from polarshape.io.yamlfile import load_yaml, resolve_config_path
 from polarshape.recover.options import InitialNormalsOptions, RecoveryOptions
 
 __all__ = [
@@ -55,19 +55,6 @@ class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
 
 
-def _resolve_path(value: str | None, info: ValidationInfo) -> str | None:
-    """Make a relative path absolute against the config file's folder (validation context)."""
-    if value is None:
-        return None
-    if not value.strip():
-        raise ValueError("must be a non-empty path")
-    path = Path(value).expanduser()
-    base = (info.context or {}).get("base_dir")
-    if not path.is_absolute() and base is not None:
-        path = Path(base) / path
-    return str(path)
-
-
 class InputConfig(_Strict):
     """Where the capture comes from.
 
@@ -87,7 +74,7 @@ class InputConfig(_Strict):
     @field_validator("path", "scene", "session")
     @classmethod
     def _paths(cls, value: str | None, info: ValidationInfo) -> str | None:
-        return _resolve_path(value, info)
+        return resolve_config_path(value, info)
 
     @model_validator(mode="after")
     def _consistent(self) -> InputConfig:
@@ -225,7 +212,7 @@ class RunConfig(_Strict):
     @field_validator("output")
     @classmethod
     def _output(cls, value: str | None, info: ValidationInfo) -> str | None:
-        return _resolve_path(value, info)
+        return resolve_config_path(value, info)
 
 
 # --- error messages ----------------------------------------------------------------------------

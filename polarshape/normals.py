@@ -7,9 +7,11 @@ Steps (each timed in ``NormalsResult.timings``, each omission recorded in ``skip
    trimmed (:func:`polarshape.recover.photometric.robust_lambertian_ps`), run once: the start of
    the FMBRDF fit, the whole answer of the ``lambertian`` model, and the baseline the report shows;
 3. **model choice** — ``auto`` takes ``lambertian`` when Lambertian PS explains s0 and the light is
-   unpolarised, else ``fmbrdf``;
+   unpolarised, else ``fmbrdf``; with a known material (``recovery.material``, an FMBRDF) ``auto``
+   is ``fmbrdf``: the material says what the object is;
 4. **FMBRDF path** — material and normals coarse to fine
-   (:func:`polarshape.recover.coarse_to_fine.solve_fmbrdf`), then pixels without data filled from
+   (:func:`polarshape.recover.coarse_to_fine.solve_fmbrdf`; a known material fixed or as the
+   start, :class:`polarshape.recover.coarse_to_fine.KnownMaterial`), then pixels without data filled from
    their neighbours (:func:`polarshape.recover.priors.fill_unsupported`) and, when asked, the
    smoothness prior (:func:`polarshape.recover.priors.smooth_normals`);
    **Lambertian path** — the PS normals and albedo, pixels without data filled the same way,
@@ -37,7 +39,8 @@ from polarshape.brdf.fmbrdf import build_tables
 from polarshape.errors import CaptureError
 from polarshape.imaging.stokes import dolp
 from polarshape.io.capture import Capture
-from polarshape.recover.coarse_to_fine import FMBRDFState, SolveLog, solve_fmbrdf
+from polarshape.io.material import load_material
+from polarshape.recover.coarse_to_fine import FMBRDFState, KnownMaterial, SolveLog, solve_fmbrdf
 from polarshape.recover.normal_solver import CHUNK_PIXELS
 from polarshape.recover.observations import RecoveryInputs, crop_inputs, flatten_observations, paste_crop
 from polarshape.recover.options import InitialNormalsOptions, RecoveryOptions
@@ -48,7 +51,7 @@ from polarshape.recover.reflectometry import render_parts
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["NormalsResult", "choose_model", "initial_normals", "recover_capture", "recover_normals"]
+__all__ = ["NormalsResult", "choose_model", "initial_normals", "known_material", "recover_capture", "recover_normals"]
 
 
 @dataclass
@@ -71,6 +74,8 @@ class NormalsResult:
         skipped: what was left out, with the reason.
         filled: (H, W) bool mask pixels with < 3 usable observations, whose normal and albedo are
             not their own but their neighbours' (both models; filled.png).
+        counts: work of the material step (:class:`polarshape.recover.coarse_to_fine.SolveLog`:
+            material_fits, material_fit_iterations, kappa_probes, albedo_solves).
     """
 
     normals: Tensor
@@ -86,6 +91,7 @@ class NormalsResult:
     timings: dict[str, float] = field(default_factory=dict)
     skipped: list[str] = field(default_factory=list)
     filled: Tensor | None = None
+    counts: dict[str, int] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -202,13 +208,25 @@ def _render_fmbrdf(inputs: RecoveryInputs, state: FMBRDFState) -> Tensor:
     return out.permute(2, 3, 0, 1)
 
 
+def known_material(options: RecoveryOptions) -> KnownMaterial | None:
+    """The material ``recovery.material`` names, read again (validated when the options were), or None.
+
+    Raises:
+        MaterialError: the file changed since into something unreadable, or holds another model.
+    """
+    if options.material is None:
+        return None
+    return KnownMaterial(load_material(options.material).fmbrdf_params(), options.material_use)
+
+
 def _fmbrdf_solution(inputs: RecoveryInputs, ps: RobustPSResult, options: RecoveryOptions, *, seed: int,
                      progress: bool, log: SolveLog) -> _Solution:
     """Coarse-to-fine FMBRDF solve from the PS normals, fill, optional smoothness prior, render."""
     if not inputs.has_polarisation:
         log.skipped.append("polarisation: no linear polarisation above the noise (no polariser or an unpolarised "
                            "scene): intensity-only fit")
-    state, _ = solve_fmbrdf(inputs, ps.normals, options, seed=seed, progress=progress, log=log)
+    state, _ = solve_fmbrdf(inputs, ps.normals, options, seed=seed, progress=progress, log=log,
+                            material=known_material(options))
     normals, k_b, filled = _fill(inputs, state.normals, state.k_b, log)
     if not bool(filled.any()):
         normals, k_b = state.normals, state.k_b
@@ -257,7 +275,11 @@ def recover_normals(
     t0 = time.perf_counter()
     ps = initial_normals(crop, initial)
     log.timings["init_lambertian"] = time.perf_counter() - t0
-    model = choose_model(crop, ps, log.skipped) if options.model == "auto" else options.model
+    if options.model == "auto" and options.material is not None:
+        model = "fmbrdf"
+        log.skipped.append("model choice: auto with recovery.material (an FMBRDF material): model 'fmbrdf'")
+    else:
+        model = choose_model(crop, ps, log.skipped) if options.model == "auto" else options.model
     if model == "lambertian":
         sol = _lambertian_solution(crop, ps, log)
     else:
@@ -271,7 +293,7 @@ def recover_normals(
         initial_normals=paste_crop(ps.normals, crop, inputs, channels_last=True),
         initial_valid=paste_crop(ps.valid & crop.mask, crop, inputs, False),
         history=log.history, timings=log.timings, skipped=log.skipped,
-        filled=None if sol.filled is None else paste_crop(sol.filled, crop, inputs, False),
+        filled=None if sol.filled is None else paste_crop(sol.filled, crop, inputs, False), counts=dict(log.counts),
     )
 
 

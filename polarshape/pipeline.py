@@ -8,7 +8,8 @@ params.json records both):
 2. ``preprocess`` — :func:`preprocess`: object mask, Stokes images, observation validity, per-pixel
    lights and view directions (:func:`polarshape.recover.preprocess.preprocess_capture`);
 3. ``recovery`` — :func:`polarshape.normals.recover_normals`: initial normals (robust Lambertian
-   PS), model choice, the FMBRDF joint fit or the Lambertian answer;
+   PS), model choice, the FMBRDF joint fit or the Lambertian answer (with ``recovery.material``:
+   a known material, fixed or as the start; params.json's ``material`` records which);
 4. ``integration`` — :func:`integrate`: depth from the normals (:mod:`polarshape.surface.integrate`);
 5. ``mesh`` — :func:`build_meshes`: grid mesh of the depth map (and screened Poisson if asked);
 6. ``export`` — result files (:func:`polarshape.io.results.write_maps`);
@@ -45,6 +46,7 @@ from polarshape.cameras import Camera
 from polarshape.config import RunConfig
 from polarshape.errors import CaptureError, ConfigError, PipelineError, PolarshapeWarning
 from polarshape.io.export import write_npy
+from polarshape.io.material import load_material
 from polarshape.imaging.demosaic import stokes_from_mosaic
 from polarshape.imaging.pixels import counts_to_float, max_count
 from polarshape.checks import resolve_device, to_numpy
@@ -420,6 +422,16 @@ def _capture_source(capture: Capture, config: RunConfig, work: Path, out: Path) 
     return str(root)
 
 
+def _material_record(config: RunConfig, result: NormalsResult) -> dict[str, Any] | None:
+    """params.json's ``material``: the known material's file, use and parameters (None without one)."""
+    options = config.recovery
+    if options.material is None:
+        return None
+    material = load_material(options.material)
+    return {"file": options.material, "use": options.material_use, "model": material.model,
+            "parameters": dict(material.parameters), "applied": result.model == "fmbrdf"}
+
+
 def _params(config: RunConfig, capture: Capture, inputs: RecoveryInputs, result: NormalsResult, surface: Surface,
             mesh_info: dict[str, Any], metrics: dict[str, Any], device: str, work: Path, out: Path) -> dict[str, Any]:
     """The content of params.json (format :data:`polarshape.io.results.RESULT_FORMAT`)."""
@@ -434,6 +446,8 @@ def _params(config: RunConfig, capture: Capture, inputs: RecoveryInputs, result:
         "losses": {"final": result.history[-1] if result.history else None, "history": result.history},
         "metrics": metrics,
         "recovery_timings_s": {str(k): float(v) for k, v in result.timings.items()},
+        "recovery_counts": {str(k): int(v) for k, v in result.counts.items()},
+        "material": _material_record(config, result),
         "capture": {
             "source": _capture_source(capture, config, work, out),
             "input_type": config.input.type,
@@ -505,7 +519,8 @@ def run_pipeline(
     out = Path(target).absolute()
     device = str(resolve_device(config.device, "device"))
     torch.manual_seed(config.seed)
-    inputs_paths = [config.input.path, config.input.scene, config.input.session, config_path]
+    inputs_paths = [config.input.path, config.input.scene, config.input.session, config.recovery.material,
+                    config_path]
     log = _StageLog(config.progress)
     try:
         refusal = lambda p: output_refusal(p, inputs_paths, overwrite=overwrite)  # noqa: E731

@@ -23,7 +23,7 @@ STAGES: tuple[tuple[str, ...], ...] = (
     ("normals",),
     ("surface",),
     ("report",),
-    ("config", "pipeline"),
+    ("config", "pipeline", "measure"),
     ("cli",),
 )
 

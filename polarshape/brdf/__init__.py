@@ -14,6 +14,7 @@ from polarshape.brdf.baselines import (
 )
 from polarshape.brdf.fmbrdf import PARAM_BOUNDS, FMBRDFTables, build_tables, fmbrdf_stokes
 from polarshape.brdf.params import FMBRDF_PARAM_NAMES, FMBRDFParams
+from polarshape.brdf.tabulate import fmbrdf_merl_table
 
 __all__ = [
     "fmbrdf_stokes",
@@ -27,4 +28,5 @@ __all__ = [
     "oren_nayar_stokes",
     "torrance_sparrow_stokes",
     "baek_pbrdf_stokes",
+    "fmbrdf_merl_table",
 ]

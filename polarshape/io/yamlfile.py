@@ -25,9 +25,11 @@ from typing import Any
 import yaml
 from yaml.nodes import MappingNode, Node, ScalarNode, SequenceNode
 
+from pydantic import ValidationInfo
+
 from polarshape.errors import ConfigError, PolarshapeError
 
-__all__ = ["load_yaml"]
+__all__ = ["load_yaml", "resolve_config_path"]
 
 _MERGE_TAG = "tag:yaml.org,2002:merge"
 
@@ -129,3 +131,21 @@ def load_yaml(
         raise error(f"{path}: not valid YAML: {_one_line(err)}") from None
     finally:
         loader.dispose()
+
+
+def resolve_config_path(value: str | None, info: ValidationInfo) -> str | None:
+    """A pydantic validator's path made absolute against the configuration file's folder (the
+    validation context's ``base_dir``; the working directory without one). None stays None.
+
+    Raises:
+        ValueError: an empty path (pydantic reports it under the key).
+    """
+    if value is None:
+        return None
+    if not value.strip():
+        raise ValueError("must be a non-empty path")
+    path = Path(value).expanduser()
+    base = (info.context or {}).get("base_dir")
+    if not path.is_absolute() and base is not None:
+        path = Path(base) / path
+    return str(path)

@@ -7,6 +7,7 @@ Along the data flow:
 - :mod:`~polarshape.recover.preprocess` — capture → :class:`RecoveryInputs`;
 - :mod:`~polarshape.recover.photometric` — Lambertian photometric stereo (plain and robust): the initial normals;
 - :mod:`~polarshape.recover.reflectometry` — the material for known normals (spec eq. 25);
+- :mod:`~polarshape.recover.table_fit` — the material of a tabulated (MERL-layout) BRDF, log-RMSE;
 - :mod:`~polarshape.recover.normal_solver` — per-pixel Levenberg–Marquardt normals, neighbour propagation;
 - :mod:`~polarshape.recover.priors` — smoothness prior, filling pixels without data;
 - :mod:`~polarshape.recover.coarse_to_fine` — material and normals alternated on a pyramid;
@@ -20,6 +21,7 @@ from polarshape.recover.options import InitialNormalsOptions, RecoveryOptions
 from polarshape.recover.photometric import PSReason, RobustPSResult, lambertian_ps, robust_lambertian_ps
 from polarshape.recover.preprocess import preprocess_capture
 from polarshape.recover.reflectometry import ReflectanceFit, fit_reflectance
+from polarshape.recover.table_fit import TableFit, fit_fmbrdf_to_table, fit_material_table
 
 __all__ = [
     "FMBRDFState",
@@ -32,6 +34,9 @@ __all__ = [
     "ReflectanceFit",
     "RobustPSResult",
     "SolveLog",
+    "TableFit",
+    "fit_fmbrdf_to_table",
+    "fit_material_table",
     "fit_reflectance",
     "lambertian_ps",
     "preprocess_capture",

@@ -14,6 +14,18 @@ normals and run step b only. With ``fit_kappa`` None, κ is tested once the coar
 converged: a cheap probe on coarse tables, then a fit; kept only if it lowers the loss by ≥ 1 %
 (else κ = 0, the separable fast path, and the skip recorded).
 
+A known material (``recovery.material``, :class:`KnownMaterial`) changes step a. ``fixed``: μ, α, β,
+κ stay the material's and step a only solves the albedos in closed form on the subsample — no
+non-linear search, no κ test, one table build per outer iteration instead of a fit's dozens.
+Albedos are in the capture's units (fraction of full scale per unit light intensity) and scale
+with the exposure, gain and light power of the rig, so they are not carried over: with per-pixel
+k_b, k_s (the rig's scale of the surface term) is solved with the k_b map; with one global k_b, one
+scale c of the material's (k_s, k_b) is solved, which keeps its ratio r_k = k_b/k_s (a property of
+the material). ``initial``: the material starts the fit — the first outer iteration solves the
+albedos only (the normals move to the material first), the later ones fit μ, α, β (and κ when the
+material has κ > 0, unless ``fit_kappa`` says otherwise) without the α grid that starts an
+unknown material.
+
 Robust loss: Huber on channel-weighted Stokes residuals, δ = 3 × the robust (MAD) residual σ of the
 initial fit, floored at 4 quantisation steps (:func:`polarshape.recover.normal_solver.huber_delta`).
 """
@@ -23,7 +35,8 @@ from __future__ import annotations
 import logging
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+from typing import Literal
 
 import torch
 import torch.nn.functional as F
@@ -37,25 +50,51 @@ from polarshape.recover.normal_solver import (
 )
 from polarshape.recover.observations import Observations, RecoveryInputs, downsample_inputs, flatten_observations
 from polarshape.recover.options import RecoveryOptions
-from polarshape.recover.reflectometry import ALPHA_GRID, fit_reflectance, objective, render_parts, solve_albedos
+from polarshape.recover.reflectometry import (
+    ALPHA_GRID, channel_weights, fit_reflectance, objective, render_parts, solve_albedos,
+)
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["FMBRDFState", "SolveLog", "build_pyramid", "fit_level", "profile_alpha", "solve_fmbrdf"]
+__all__ = [
+    "FMBRDFState", "KnownMaterial", "SolveLog", "build_pyramid", "fit_albedo_scale", "fit_level", "profile_alpha",
+    "solve_fmbrdf",
+]
 
 
 @dataclass
 class SolveLog:
-    """What a solve reports besides its result: per-iteration records, seconds per step, what it skipped."""
+    """What a solve reports besides its result: per-iteration records, seconds per step, what it
+    skipped, and how much work the material took (``counts``: ``material_fits`` — calls of the
+    non-linear global fit, ``material_fit_iterations`` — their LM iterations, ``kappa_probes``,
+    ``albedo_solves`` — closed-form albedo steps of a fixed or initial material)."""
 
     history: list[dict] = field(default_factory=list)
     timings: dict[str, float] = field(default_factory=dict)
     skipped: list[str] = field(default_factory=list)
+    counts: dict[str, int] = field(default_factory=dict)
     t_start: float = field(default_factory=time.perf_counter)
 
     def add_time(self, name: str, since: float) -> None:
         """Add the seconds since ``since`` (a ``time.perf_counter()`` value) to ``timings[name]``."""
         self.timings[name] = self.timings.get(name, 0.0) + time.perf_counter() - since
+
+    def count(self, name: str, n: int = 1) -> None:
+        """Add ``n`` to ``counts[name]``."""
+        self.counts[name] = self.counts.get(name, 0) + n
+
+
+@dataclass(frozen=True)
+class KnownMaterial:
+    """A material given to the solve (``recovery.material``, module docstring).
+
+    Attributes:
+        params: the material (μ, α, β, κ, and the k_s, k_b it was measured with).
+        use: ``fixed`` (μ, α, β, κ kept; albedos solved) or ``initial`` (the fit starts from it).
+    """
+
+    params: FMBRDFParams
+    use: Literal["fixed", "initial"] = "fixed"
 
 
 @dataclass(frozen=True)
@@ -107,20 +146,60 @@ def profile_alpha(normals: Tensor, obs: Observations, params: FMBRDFParams, per_
     return FMBRDFParams(**{**vars(params), "alpha": best[1]})
 
 
+def fit_albedo_scale(normals: Tensor, obs: Observations, params: FMBRDFParams, *, per_pixel_albedo: bool,
+                     polarised: bool) -> FMBRDFParams:
+    """The albedos of a known material (μ, α, β, κ kept) for fixed normals, in closed form.
+
+    Per-pixel k_b: weighted least-squares k_s and k_b (P,) (:func:`solve_albedos`); the returned
+    ``k_b`` is their median over the pixels with k_b > 0. One global k_b: one scale c ≥ 0 of the
+    material's (k_s, k_b), so that r_k = k_b/k_s is kept: c = Σ w m o / Σ w m m with
+    m = k_s·S_surf + k_b·S_body (channel-weighted, spec §8's model of observation).
+
+    Args:
+        normals: (P, 3) unit normals, camera frame. obs: the P pixels' observations.
+        params: the material. per_pixel_albedo, polarised: as for :func:`fit_reflectance`.
+
+    Returns:
+        ``params`` with the solved k_s and k_b.
+    """
+    with torch.no_grad():
+        surf, body = render_parts(params.build_tables(device=normals.device), normals, obs)  # (P, K, 3) each
+        if per_pixel_albedo:
+            k_s, k_b = solve_albedos(surf, body, obs, per_pixel=True, polarised=polarised)
+            k_b_med = float(k_b[k_b > 0].median()) if bool((k_b > 0).any()) else 0.0
+            return replace(params, k_s=float(k_s), k_b=k_b_med)
+        model = params.k_s * surf + params.k_b * body  # (P, K, 3)
+        w = obs.weight.unsqueeze(-1) * channel_weights(surf, polarised)  # (P, K, 3)
+        den = float((w * model * model).sum())
+        c = max(float((w * model * obs.stokes).sum()) / den, 0.0) if den > 0 else 1.0
+    return replace(params, k_s=c * params.k_s, k_b=c * params.k_b)
+
+
 def _global_step(n_sub: Tensor, obs_sub: Observations, params: FMBRDFParams, options: RecoveryOptions, *, it: int,
-                 fit_kappa: bool, polarised: bool, delta: float) -> FMBRDFParams:
-    """Step a: the material on the subsample, for fixed normals (schedule by outer iteration ``it``)."""
-    grid = it == 0  # the coarse α grid starts the first fit only
-    if grid and not polarised:
-        params = profile_alpha(n_sub, obs_sub, params, options.per_pixel_albedo, delta)
-        grid = False
-    fit = fit_reflectance(
-        n_sub, obs_sub, init=params, per_pixel_albedo=options.per_pixel_albedo, fit_kappa=fit_kappa,
-        polarised=polarised, delta=delta, grid_search=grid, max_iter=12 if it == 0 else 4 if it == 1 else 2,
+                 fit_kappa: bool, polarised: bool, delta: float, use: Literal["fit", "fixed", "initial"],
+                 log: SolveLog) -> FMBRDFParams:
+    """Step a: the material on the subsample, for fixed normals (schedule by outer iteration ``it``;
+    ``use``: an unknown material, a fixed one or an initial one, module docstring)."""
+    if use == "fixed" or (use == "initial" and it == 0):
+        log.count("albedo_solves")
+        return fit_albedo_scale(n_sub, obs_sub, params, per_pixel_albedo=options.per_pixel_albedo, polarised=polarised)
+    if use == "initial":  # a known start: no α grid, no staged lobe-first schedule
+        grid, max_iter, fit_names = False, 4 if it == 1 else 2, None
+    else:
+        grid = it == 0  # the coarse α grid starts the first fit only
+        if grid and not polarised:
+            params = profile_alpha(n_sub, obs_sub, params, options.per_pixel_albedo, delta)
+            grid = False
+        max_iter = 12 if it == 0 else 4 if it == 1 else 2
         # the initial (Lambertian) normals are biased by highlights: fit the lobe width first,
         # free μ and β once the normals have moved to the model
-        fit_names=("alpha",) if it == 0 else ("alpha", "beta") if it == 1 else None,
+        fit_names = ("alpha",) if it == 0 else ("alpha", "beta") if it == 1 else None
+    fit = fit_reflectance(
+        n_sub, obs_sub, init=params, per_pixel_albedo=options.per_pixel_albedo, fit_kappa=fit_kappa,
+        polarised=polarised, delta=delta, grid_search=grid, max_iter=max_iter, fit_names=fit_names,
     )
+    log.count("material_fits")
+    log.count("material_fit_iterations", sum(1 for h in fit.history if h.get("stage") == "lm"))
     return fit.params
 
 
@@ -184,6 +263,7 @@ def _mean_loss(loss_pp: Tensor, obs: Observations) -> float:
 def _decide_kappa(lv: _Level, sub_idx: Tensor, options: RecoveryOptions, polarised: bool, log: SolveLog) -> bool:
     """Test κ once the κ = 0 alternation converged; True when κ was kept (``lv.params`` updated)."""
     t0 = time.perf_counter()
+    log.count("kappa_probes")
     gain, trial = _kappa_probe(lv.n[sub_idx], lv.obs.select(sub_idx), lv.params, options, polarised=polarised,
                                delta=lv.delta)
     log.timings["kappa_test"] = time.perf_counter() - t0
@@ -196,13 +276,16 @@ def _decide_kappa(lv: _Level, sub_idx: Tensor, options: RecoveryOptions, polaris
 
 
 def fit_level(inputs: RecoveryInputs, normals: Tensor, params: FMBRDFParams, options: RecoveryOptions, *,
-              fit_globals: bool, level: int, seed: int = 0, progress: bool = False, log: SolveLog) -> FMBRDFState:
+              fit_globals: bool, level: int, seed: int = 0, progress: bool = False, log: SolveLog,
+              material_use: Literal["fit", "fixed", "initial"] = "fit") -> FMBRDFState:
     """Alternate global parameters and normals on one pyramid level (normals only unless ``fit_globals``).
 
     Args:
         inputs: the level's inputs; normals: (H, W, 3) start; params: the current material.
         options: recovery options; level: pyramid level (0 = finest); seed: subsample seed.
-        log: history, timings and skips are appended to it.
+        log: history, timings, skips and counts are appended to it.
+        material_use: ``fit`` (``params`` is a guess), ``fixed`` (μ, α, β, κ of ``params`` kept,
+            albedos solved) or ``initial`` (``params`` starts the fit), module docstring.
     """
     pixels = inputs.mask
     obs = flatten_observations(inputs, pixels)
@@ -212,14 +295,17 @@ def fit_level(inputs: RecoveryInputs, normals: Tensor, params: FMBRDFParams, opt
                 huber_delta(obs, inputs.noise_std), neighbour_index(pixels) if options.propagate else None)
     sub_idx = _subsample(n.shape[0], options.subsample_pixels, seed + level, n.device)
     fit_kappa = options.fit_kappa
-    kappa_decided = fit_kappa is not None
+    if material_use == "initial" and fit_kappa is None and params.kappa > 0:
+        fit_kappa = True  # the material has a correlation: fit it from there, no probe
+    kappa_decided = fit_kappa is not None or material_use == "fixed"
     window: list[float] = []
     outer = options.max_outer_iterations if fit_globals else 1
     for it in tqdm(range(outer), desc=f"level {level}", unit="iteration", disable=not progress):
         if fit_globals:
             t0 = time.perf_counter()
             lv.params = _global_step(lv.n[sub_idx], obs.select(sub_idx), lv.params, options, it=it,
-                                     fit_kappa=bool(fit_kappa), polarised=polarised, delta=lv.delta)
+                                     fit_kappa=bool(fit_kappa), polarised=polarised, delta=lv.delta,
+                                     use=material_use, log=log)
             log.add_time("global_params", t0)
         t0 = time.perf_counter()
         problem, loss_pp, n_iter = _normal_step(lv, options, polarised, max_iter=6 if fit_globals else 10,
@@ -280,8 +366,12 @@ def _start_from(coarser: FMBRDFState, fallback: Tensor) -> Tensor:
 
 
 def solve_fmbrdf(inputs: RecoveryInputs, initial_normals: Tensor, options: RecoveryOptions, *, seed: int = 0,
-                 progress: bool = False, log: SolveLog | None = None) -> tuple[FMBRDFState, SolveLog]:
+                 progress: bool = False, log: SolveLog | None = None,
+                 material: KnownMaterial | None = None) -> tuple[FMBRDFState, SolveLog]:
     """Material and normals of ``inputs`` from ``initial_normals`` (H, W, 3), coarse to fine (module docstring).
+
+    Args:
+        material: a known material, fixed or initial (None: fitted from the default guess).
 
     Returns:
         The finest level's :class:`FMBRDFState` and the :class:`SolveLog`.
@@ -296,9 +386,15 @@ def solve_fmbrdf(inputs: RecoveryInputs, initial_normals: Tensor, options: Recov
         initial.append(unit(F.avg_pool2d(initial[-1].permute(2, 0, 1).unsqueeze(0), 2)[0].permute(1, 2, 0)))
     log.timings["pyramid"] = time.perf_counter() - t0
     state: FMBRDFState | None = None
+    first = FMBRDFParams() if material is None else replace(material.params)
+    use: Literal["fit", "fixed", "initial"] = "fit" if material is None else material.use
+    if use == "fixed":
+        log.skipped.append("material: fixed by recovery.material (ior, alpha, beta, kappa not fitted; albedos "
+                           "solved in closed form; no kappa test)")
     for depth in range(len(levels) - 1, -1, -1):
         start = initial[depth] if state is None else _start_from(state, initial[depth])
-        state = fit_level(levels[depth], start, FMBRDFParams() if state is None else state.params, options,
-                          fit_globals=state is None, level=depth, seed=seed, progress=progress, log=log)
+        state = fit_level(levels[depth], start, first if state is None else state.params, options,
+                          fit_globals=state is None, level=depth, seed=seed, progress=progress, log=log,
+                          material_use=use)
     assert state is not None  # at least one level
     return state, log

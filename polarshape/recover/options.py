@@ -1,14 +1,27 @@
 """The recovery's options: one definition, used by the solvers and embedded in ``polarshape run``'s
 configuration as its ``initial_normals`` and ``recovery`` sections (validated once, at the edge).
+
+``recovery.material`` names a known material (a ``material.json`` of ``polarshape material``,
+:mod:`polarshape.io.material`); a relative path starts at the folder of the run configuration
+(the validation context's ``base_dir``, as for ``input.path``), else at the working directory.
+The file is read and checked here, so a missing or invalid material fails before anything runs.
 """
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator, model_validator
 
-__all__ = ["InitialNormalsOptions", "RecoveryOptions"]
+from polarshape.io.material import MaterialError, load_material
+from polarshape.io.yamlfile import resolve_config_path
+
+__all__ = ["InitialNormalsOptions", "MATERIAL_USES", "RecoveryOptions"]
+
+#: What ``recovery.material_use`` may say: ``fixed`` (the material's μ, α, β, κ are not re-fitted)
+#: or ``initial`` (they start the global fit).
+MATERIAL_USES: tuple[str, ...] = ("fixed", "initial")
 
 
 class _Options(BaseModel):
@@ -48,3 +61,40 @@ class RecoveryOptions(_Options):
         0.0, ge=0.0, le=100.0, description="weight of a normal-smoothness prior after the per-pixel fit (0: per-pixel "
         "maximum likelihood; 0.5: a neighbour weighs half a typical pixel's own data; smooths across creases)"
     )
+    material: str | None = Field(
+        None, description="a known FMBRDF material: a material.json (polarshape material), relative to the config "
+        "file's folder; null: fit the material from this capture"
+    )
+    material_use: Literal["fixed", "initial"] = Field(
+        "fixed", description="fixed: keep the material's ior, alpha, beta, kappa and fit only normals and albedos "
+        "(k_s, the per-pixel k_b; with per_pixel_albedo false one scale of k_s and k_b, r_k kept); initial: start the "
+        "global fit from the material instead of the default guess"
+    )
+
+    @field_validator("material")
+    @classmethod
+    def _material_file(cls, value: str | None, info: ValidationInfo) -> str | None:
+        """Resolve against the config's folder and check that the file holds an FMBRDF material."""
+        if value is not None and not value.strip():
+            raise ValueError("must be the path of a material.json, or null")
+        resolved = resolve_config_path(value, info)
+        if resolved is None:
+            return None
+        path = Path(resolved)
+        try:
+            material = load_material(path)
+        except MaterialError as err:  # a ValueError here is reported under the key recovery.material
+            raise ValueError(f"{err} (relative paths start at the config file's folder)") from None
+        try:
+            material.fmbrdf_params()
+        except MaterialError as err:
+            raise ValueError(f"{path}: {err}") from None
+        return str(path)
+
+    @model_validator(mode="after")
+    def _material_needs_fmbrdf(self) -> RecoveryOptions:
+        if self.material is not None and self.model == "lambertian":
+            raise ValueError("recovery.material applies to the fmbrdf model and recovery.model is 'lambertian' "
+                             "(photometric stereo has no material to fix); remove recovery.material or set "
+                             "recovery.model to fmbrdf or auto")
+        return self

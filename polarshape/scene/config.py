@@ -3,7 +3,11 @@
 A scene file holds ``camera``, ``sensor``, ``objects`` and ``lights`` (see configs/scenes/*.yaml,
 whose comments document every field). Units: metres, microseconds, degrees only where a field
 name says ``_deg``. Frames: the camera frame (OpenCV: x right, y down, z forward). Relative file
-paths (meshes, texture images) are relative to the scene file's folder.
+paths (meshes, texture images, material files) are relative to the scene file's folder.
+
+An object's ``material`` is given inline (``{model: fmbrdf, ior: ..., ...}``) or as a file,
+``{file: material.json}`` (:mod:`polarshape.io.material`, e.g. measured by ``polarshape material``):
+read and checked when the scene is, rendered as :func:`polarshape.scene.materials.material_from_file` says.
 """
 
 from __future__ import annotations
@@ -13,7 +17,9 @@ from dataclasses import fields
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import (
+    BaseModel, ConfigDict, Discriminator, Field, Tag, ValidationError, ValidationInfo, field_validator, model_validator,
+)
 from pydantic.dataclasses import dataclass as pydantic_dataclass
 
 from polarshape.brdf.params import FMBRDFParams
@@ -21,10 +27,11 @@ from polarshape.cameras import Camera, OrthographicCamera, PerspectiveCamera
 from polarshape.errors import ConfigError
 from polarshape.imaging.pixels import PIXEL_FORMATS
 from polarshape.io.capture import IntrinsicsSpec, LightSpec, MosaicSpec, Projection
+from polarshape.io.material import MaterialError, load_material
 from polarshape.io.yamlfile import load_yaml
 from polarshape.lights import DirectionalLight, Light
 from polarshape.scene.geometry import BlobShape, MeshShape, PlaneShape, Shape, SphereShape, TorusShape
-from polarshape.scene.materials import BaekMaterial, FMBRDFMaterial, LambertianMaterial, Material
+from polarshape.scene.materials import BaekMaterial, FMBRDFMaterial, LambertianMaterial, Material, material_from_file
 from polarshape.scene.objects import Scene, SceneObject
 from polarshape.scene.sensor import SensorModel
 from polarshape.scene.textures import AlbedoTexture, make_texture
@@ -213,7 +220,41 @@ class BaekConfig(_Strict):
         return BaekMaterial(self.ior, self.k_s, self.k_d, self.alpha, self.distribution)
 
 
-MaterialConfig = Annotated[FMBRDFConfig | LambertianConfig | BaekConfig, Field(discriminator="model")]
+class MaterialFileConfig(_Strict):
+    """``material: {file: material.json}``: a material file (relative to the scene file's folder),
+    read and checked when the scene is validated; fmbrdf, lambertian or baek."""
+
+    file: str
+
+    @field_validator("file")
+    @classmethod
+    def _readable_material(cls, value: str, info: ValidationInfo) -> str:
+        if not value.strip():
+            raise ValueError("must be the path of a material.json")
+        path = _resolve(value, (info.context or {}).get("base_dir"))
+        try:
+            material_from_file(load_material(path), str(path))
+        except MaterialError as err:  # reported under the key ...material.file
+            raise ValueError(f"{err} (relative paths start at the scene file's folder)") from None
+        return str(path)
+
+    def to_material(self) -> Material:
+        return material_from_file(load_material(self.file), self.file)
+
+
+def _material_kind(value: Any) -> str | None:
+    """The tag of a material mapping: ``file`` for ``{file: ...}``, else its ``model``."""
+    if isinstance(value, dict):
+        return "file" if "file" in value else value.get("model")
+    return "file" if isinstance(value, MaterialFileConfig) else getattr(value, "model", None)
+
+
+MaterialConfig = Annotated[
+    Annotated[FMBRDFConfig, Tag("fmbrdf")] | Annotated[LambertianConfig, Tag("lambertian")]
+    | Annotated[BaekConfig, Tag("baek")] | Annotated[MaterialFileConfig, Tag("file")],
+    Discriminator(_material_kind, custom_error_type="material_kind",
+                  custom_error_message="a material needs model: fmbrdf | lambertian | baek, or file: material.json"),
+]
 
 
 class TextureConfig(_Strict):
@@ -337,7 +378,7 @@ def parse_scene_config(data: dict[str, Any], *, base_dir: Path | None = None, so
     if not isinstance(data, dict):
         raise ValueError(f"{source}: a scene file must be a YAML mapping with camera, objects and lights")
     try:
-        return SceneConfig.model_validate({**data, "base_dir": base_dir})
+        return SceneConfig.model_validate({**data, "base_dir": base_dir}, context={"base_dir": base_dir})
     except ValidationError as err:
         raise ValueError(f"{source} is not a valid scene:\n{_format_errors(err)}") from err
 

@@ -4,6 +4,8 @@ A material answers one question: the Stokes vector (s0, s1, s2) reflected toward
 irradiance at normal incidence from direction L (the N·L foreshortening is inside), in each
 pixel's Stokes frame (spec fmbrdf.md §1), zero where N·L ≤ 0 or N·V ≤ 0. A per-point
 ``albedo_scale`` multiplies the diffuse/body albedo (k_b or k_d) — how textures act.
+
+:func:`material_from_file` turns a ``material.json`` (:mod:`polarshape.io.material`) into one.
 """
 
 from __future__ import annotations
@@ -17,6 +19,9 @@ from torch import Tensor
 from polarshape.brdf.baselines import baek_pbrdf_stokes, lambertian_stokes
 from polarshape.brdf.fmbrdf import FMBRDFTables, fmbrdf_stokes
 from polarshape.brdf.params import FMBRDFParams
+from polarshape.io.material import MaterialError, MaterialFile
+
+__all__ = ["BaekMaterial", "FMBRDFMaterial", "LambertianMaterial", "Material", "material_from_file"]
 
 
 @runtime_checkable
@@ -110,3 +115,23 @@ class BaekMaterial:
             normal, light, view, ior=self.ior, k_s=self.k_s, k_d=self.k_d * albedo_scale, alpha=self.alpha,
             distribution=self.distribution,
         )
+
+
+def material_from_file(material: MaterialFile, source: str = "material file") -> Material:
+    """The simulator's material of a ``material.json``: ``fmbrdf`` → :class:`FMBRDFMaterial`,
+    ``lambertian`` → :class:`LambertianMaterial` (k_d), ``baek`` → :class:`BaekMaterial` (ior, k_s,
+    k_d, alpha; GGX, the distribution :func:`polarshape.brdf.baselines.baek_pbrdf_stokes` fits with).
+
+    Raises:
+        MaterialError: a model the simulator has no material for (``oren_nayar``, ``torrance_sparrow``),
+            naming ``source`` and the fix.
+    """
+    values = material.parameters
+    if material.model == "fmbrdf":
+        return FMBRDFMaterial(**material.fmbrdf_params().as_kwargs())
+    if material.model == "lambertian":
+        return LambertianMaterial(values["k_d"])
+    if material.model == "baek":
+        return BaekMaterial(values["ior"], values["k_s"], values["k_d"], values["alpha"])
+    raise MaterialError(f"{source}: model {material.model!r} has no simulator material (scenes render fmbrdf, "
+                        "lambertian and baek); fit one of those (`polarshape material ... --models fmbrdf`)")
