@@ -104,6 +104,26 @@ def test_fixed_true_material_matches_the_fit_against_ground_truth(fitted_run, sp
 
 
 @pytest.mark.slow
+def test_a_material_measured_on_a_sphere_travels_to_a_run(fitted_run, sphere_capture: Path, render_sphere,
+                                                          tmp_path: Path) -> None:  # noqa: ANN001
+    """The issue's round trip: ``polarshape material`` on a one-light capture of the material →
+    material.json → ``polarshape run`` of another capture with it fixed: no material fit, and normals
+    as good as the run that fits the material (vs ground truth, within 0.05°)."""
+    from polarshape.measure import measure_material
+
+    (tmp_path / "m").mkdir()
+    one_light = render_sphere(tmp_path / "m", width=64, pixel_size_m=4.0e-4, lights=1, seed=7)
+    measured = measure_material(one_light, shape="sphere", out=tmp_path / "measured", models=("fmbrdf",),
+                                held_out=False)
+    folder, fit_params, _ = fitted_run
+    params, _ = _run(tmp_path, sphere_capture, "measured", material=str(measured.out / "material.json"))
+    assert params["recovery_counts"].get("material_fits", 0) == 0 and params["material"]["use"] == "fixed"
+    assert params["params"]["ior"] == pytest.approx(measured.material.parameters["ior"])
+    fit_error = fit_params["metrics"]["normals"]["mean_deg"]
+    assert abs(params["metrics"]["normals"]["mean_deg"] - fit_error) < MAX_NORMAL_CHANGE_DEG
+
+
+@pytest.mark.slow
 def test_initial_material_converges_to_the_same(fitted_run, sphere_capture: Path) -> None:
     folder, fit_params, fit_normals = fitted_run
     start = FMBRDFParams(ior=1.3, alpha=0.4, beta=2.5, kappa=0.0, k_s=1.0, k_b=0.5)  # off, not the default guess
