@@ -103,7 +103,7 @@ def add_parsers(sub: Any) -> None:
     """Register ``import`` (``diligent``, ``lights``, ``stack``, ``arena``) on the top-level sub-parsers."""
     imp = sub.add_parser(
         "import",
-        help="convert data you already have (DiLiGenT-style folders, light files) into a capture",
+        help="convert data you already have (DiLiGenT folders, light files, polariser stacks, Arena saves) into a capture",
         description="Convert photometric-stereo data into polarshape's capture format. Nothing is written over "
         "the source; a capture folder is written atomically and never replaces an existing one without --overwrite.",
     )

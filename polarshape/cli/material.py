@@ -74,7 +74,7 @@ def add_parsers(sub: Any) -> None:
     """Register the ``material`` sub-command on the main parser's sub-parsers."""
     p = sub.add_parser(
         "material",
-        help="fit the material of an object of known geometry (a sphere, a normal map) and compare models",
+        help="fit the material of an object of known geometry (sphere, normal map, mesh) or of a MERL table",
         description="Fit the Fresnel Microfacet BRDF and the baselines (Baek et al. pBRDF, Oren-Nayar + "
         "Torrance-Sparrow, Lambertian + Torrance-Sparrow) to a capture of an object whose shape is known, by the "
         "paper's eq. 25 (intensity + DoLP with outlier weights). Writes OUT/material.json (the FMBRDF fit, with every "
