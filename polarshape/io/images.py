@@ -18,7 +18,7 @@ from polarshape.io.atomic import atomic_path
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["IMAGE_SUFFIXES", "ImageError", "read_image", "write_image"]
+__all__ = ["IMAGE_SUFFIXES", "ImageError", "decode_image", "read_image", "write_image"]
 
 #: File suffixes (lower case) of the image formats polarshape reads and writes.
 IMAGE_SUFFIXES: tuple[str, ...] = (".png", ".tif", ".tiff")
@@ -27,6 +27,26 @@ IMAGE_SUFFIXES: tuple[str, ...] = (".png", ".tif", ".tiff")
 def _check_suffix(path: Path) -> None:
     if path.suffix.lower() not in IMAGE_SUFFIXES:
         raise ImageError(f"{path}: unsupported image type {path.suffix!r}; use one of {IMAGE_SUFFIXES} (lossless)")
+
+
+def decode_image(path: str | os.PathLike[str]) -> np.ndarray:
+    """Decode an image file exactly as stored (``cv2.IMREAD_UNCHANGED``), a single channel as (H, W).
+
+    Callers check channels and dtype with their own message (:func:`read_image`, the importers).
+
+    Returns:
+        (H, W) or (H, W, C) array of the file's dtype.
+
+    Raises:
+        ImageError: the file cannot be decoded.
+    """
+    path = Path(path)
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise ImageError(f"{path}: cannot be decoded as an image (corrupt or not a {path.suffix} file)")
+    if image.ndim == 3 and image.shape[2] == 1:
+        image = image[:, :, 0]
+    return image
 
 
 def read_image(path: str | os.PathLike[str]) -> np.ndarray:
@@ -45,11 +65,7 @@ def read_image(path: str | os.PathLike[str]) -> np.ndarray:
     _check_suffix(path)
     if not path.is_file():
         raise ImageError(f"{path}: file not found")
-    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if image is None:
-        raise ImageError(f"{path}: cannot be decoded as an image (corrupt or not a {path.suffix} file)")
-    if image.ndim == 3 and image.shape[2] == 1:
-        image = image[:, :, 0]
+    image = decode_image(path)
     if image.ndim != 2:
         raise ImageError(
             f"{path}: has {image.shape[2] if image.ndim == 3 else '?'} channels; a raw mosaic or mask must be a "

@@ -43,12 +43,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, NamedTuple
 
-import cv2
 import numpy as np
 
 from polarshape.errors import CaptureError
 from polarshape.imaging.pixel_formats import payload_size, unpack_mosaic
 from polarshape.imaging.pixels import bit_depth_of, left_shift_of, max_count
+from polarshape.io.images import ImageError, decode_image
 from polarshape.io.capture import CAPTURE_FORMAT, Capture, parse_capture_spec, write_capture
 from polarshape.io.importers.destination import check_import_destination
 from polarshape.io.importers.diligent import read_diligent_intensities
@@ -187,11 +187,10 @@ def _read_raw(path: Path, pixel_format: str | None, width: int | None, height: i
 
 def _read_picture(path: Path, pixel_format: str | None) -> _Stored:
     """A single-channel 8/16-bit TIFF or PNG."""
-    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if image is None:
-        raise CaptureError(f"{path}: cannot be decoded as an image (corrupt, or not a {path.suffix} file)")
-    if image.ndim == 3 and image.shape[2] == 1:
-        image = image[:, :, 0]
+    try:
+        image = decode_image(path)
+    except ImageError as err:
+        raise CaptureError(str(err)) from None
     if image.ndim != 2:
         channels = image.shape[2] if image.ndim == 3 else "?"
         raise CaptureError(f"{path}: has {channels} channels: {_PREVIEW_REASON}; a polarisation mosaic is one "

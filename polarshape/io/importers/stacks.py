@@ -62,6 +62,7 @@ import torch
 from polarshape.errors import CaptureError
 from polarshape.imaging.mosaic import CHANNEL_ANGLES_DEG, MAKER_ANGLES, MakerAngles, mosaic_from_intensities, our_angle_deg
 from polarshape.imaging.pixels import BIT_DEPTHS, max_count
+from polarshape.io.images import ImageError, decode_image
 from polarshape.io.capture import CAPTURE_FORMAT, Capture, CaptureSpec, MosaicSpec, write_capture
 from polarshape.io.importers.destination import check_import_destination
 from polarshape.io.importers.diligent import read_diligent_intensities
@@ -146,11 +147,10 @@ def _classify(src: Path) -> tuple[dict[str, dict[int, str]], dict[str, str]]:
 
 def _read_single(path: Path) -> np.ndarray:
     """(H, W) uint8/uint16 polariser image."""
-    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if image is None:
-        raise CaptureError(f"{path}: cannot be decoded as an image (corrupt, or not a {path.suffix} file)")
-    if image.ndim == 3 and image.shape[2] == 1:
-        image = image[:, :, 0]
+    try:
+        image = decode_image(path)
+    except ImageError as err:
+        raise CaptureError(str(err)) from None
     if image.ndim != 2:
         raise CaptureError(f"{path}: a colour image ({image.shape[2]} channels); a polariser image must be one grey "
                            "channel (a mono polarisation camera; for a colour one, import one colour channel or "
