@@ -20,6 +20,7 @@ $(STAMP): pyproject.toml scripts/install-system-deps.sh | $(PY)
 	$(PY) -c "import torch" 2>/dev/null || $(PIP) install "torch==2.13.0"
 	$(PIP) install -e ".[dev]"
 	$(PIP) install -e ".[aravis]" || echo "make: WARNING: the 'aravis' extra (PyGObject) did not install: the Aravis camera backend is unavailable (see scripts/install-system-deps.sh)"
+	$(PIP) install -e ".[cluster]" || echo "make: WARNING: the 'cluster' extra (Ray) did not install: polarshape batch --engine ray is unavailable (--engine local works)"
 	touch $(STAMP)
 
 setup: $(STAMP)

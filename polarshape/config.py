@@ -28,10 +28,11 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationIn
 
 from polarshape.errors import ConfigError
 from polarshape.io.yamlfile import load_yaml, resolve_config_path
-from polarshape.recover.options import InitialNormalsOptions, RecoveryOptions
+from polarshape.recover.options import InitialNormalsOptions, RecoveryOptions, ValidationOptions
 
 __all__ = [
     "RUN_FORMAT",
+    "BatchConfig",
     "ConfigError",
     "ExportConfig",
     "InitialNormalsOptions",
@@ -42,7 +43,9 @@ __all__ = [
     "RecoveryOptions",
     "ReportConfig",
     "RunConfig",
+    "load_batch_config",
     "load_run_config",
+    "parse_batch_config",
     "parse_run_config",
 ]
 
@@ -204,6 +207,7 @@ class RunConfig(_Strict):
     preprocess: PreprocessConfig = PreprocessConfig()
     initial_normals: InitialNormalsOptions = InitialNormalsOptions()
     recovery: RecoveryOptions = RecoveryOptions()
+    validation: ValidationOptions = ValidationOptions()
     integration: IntegrationConfig = IntegrationConfig()
     mesh: MeshConfig = MeshConfig()
     export: ExportConfig = ExportConfig()
@@ -286,9 +290,14 @@ def parse_run_config(data: Any, source: str = "config", base_dir: str | os.PathL
     try:
         return RunConfig.model_validate(data, context=context)
     except ValidationError as err:
-        lines = [f"{source}: {err.error_count()} problem(s):"]
-        lines += [f"  - {_format_error(e)}" for e in err.errors()]
-        raise ConfigError("\n".join(lines)) from None
+        raise _config_error(err, source) from None
+
+
+def _config_error(err: ValidationError, source: str) -> ConfigError:
+    """One :class:`ConfigError` listing every problem of ``err`` (key path, problem, allowed values)."""
+    lines = [f"{source}: {err.error_count()} problem(s):"]
+    lines += [f"  - {_format_error(e)}" for e in err.errors()]
+    return ConfigError("\n".join(lines))
 
 
 def load_run_config(path: str | os.PathLike[str]) -> RunConfig:
@@ -304,3 +313,65 @@ def load_run_config(path: str | os.PathLike[str]) -> RunConfig:
     data = load_yaml(path, error=ConfigError)
     return parse_run_config(data, str(path), base_dir=path.resolve().parent)
 
+
+# --- batch configurations (polarshape batch) -----------------------------------------------------
+
+
+class BatchConfig(RunConfig):
+    """A run configuration without ``input``, for ``polarshape batch CONFIG CAPTURES...``: each capture
+    gets ``input: {type: capture, path: <capture>}`` (:meth:`for_capture`); every other key is
+    validated as in a run configuration, with the same messages."""
+
+    input: None = Field(None, description="not in a batch configuration: the captures are given on the command line")
+
+    @field_validator("input", mode="before")
+    @classmethod
+    def _no_input(cls, value: Any) -> None:
+        raise ValueError("a batch configuration has no input: the captures are given on the command line "
+                         "(polarshape batch CONFIG CAPTURES... --out DIR); remove the input section")
+
+    def for_capture(self, capture: str | os.PathLike[str], source: str = "batch configuration") -> RunConfig:
+        """The run configuration of one capture folder of the batch.
+
+        Raises:
+            ConfigError: ``capture`` is not a capture folder (``input.path``, named with ``source``).
+        """
+        data = self.model_dump(exclude={"input"})
+        data["input"] = {"type": "capture", "path": str(Path(capture).absolute())}
+        return parse_run_config(data, f"{source} for capture {capture}")
+
+
+def parse_batch_config(data: Any, source: str = "config", base_dir: str | os.PathLike[str] | None = None
+                       ) -> BatchConfig:
+    """Validate a parsed batch-configuration mapping (a run configuration without ``input``; see
+    :func:`parse_run_config` for the arguments).
+
+    Raises:
+        ConfigError: naming every invalid key path (``input`` included: a batch has none), the problem
+            and the allowed values.
+    """
+    if data is None:
+        data = {}  # an empty file: every default
+    if not isinstance(data, dict):
+        raise ConfigError(f"{source}: a batch configuration must be a YAML mapping (a run configuration without "
+                          f"input); got {type(data).__name__}")
+    context = {"base_dir": Path(base_dir) if base_dir is not None else None}
+    try:
+        return BatchConfig.model_validate(data, context=context)
+    except ValidationError as err:
+        raise _config_error(err, source) from None
+
+
+def load_batch_config(path: str | os.PathLike[str]) -> BatchConfig:
+    """Read and validate a batch configuration YAML file (relative paths start at its folder).
+
+    Raises:
+        ConfigError: as :func:`load_run_config`, and an ``input`` section (a batch takes its captures
+            from the command line).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"{path}: config file not found (a run configuration without input; see "
+                          "configs/default.yaml)")
+    data = load_yaml(path, error=ConfigError)
+    return parse_batch_config(data, str(path), base_dir=path.resolve().parent)

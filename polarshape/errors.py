@@ -11,17 +11,26 @@ Data flow: this module imports nothing from polarshape; every stage may import i
 from __future__ import annotations
 
 __all__ = [
+    "BitDepthWarning",
     "CameraError",
     "CaptureError",
     "ConfigError",
+    "ConventionWarning",
     "DeviceError",
+    "FilledPixelsWarning",
+    "FitResidualWarning",
+    "FrameOrderWarning",
+    "FrozenPixelsWarning",
     "ImageError",
     "LightRigError",
+    "ModelEvidenceWarning",
     "OutputExistsError",
     "OutputPathError",
     "OutputWriteError",
+    "ParameterBoundWarning",
     "PipelineError",
     "PolarshapeError",
+    "SelfCheckError",
     "ShapeError",
     "PolarshapeWarning",
     "SuspiciousInputWarning",
@@ -79,6 +88,60 @@ class PolarshapeWarning(UserWarning):
 class SuspiciousInputWarning(PolarshapeWarning):
     """An input that is valid but looks wrong (two lights with one direction, 12-bit data declared
     16-bit, ...); the message names the field, what looks wrong and what to check."""
+
+
+# --- self-check warnings (polarshape.recover.selfcheck; each named in params.json "checks") -------
+
+
+class FitResidualWarning(SuspiciousInputWarning):
+    """The fitted model misses the observations by far more than the sensor noise (χ² against the
+    capture's four-site noise model): the inputs do not describe the photographs — check the light
+    directions (axes, signs), the frame order and the bit depth first, then the model."""
+
+
+class ConventionWarning(SuspiciousInputWarning):
+    """The polarisation azimuth (AoLP) disagrees with the azimuth of the photometric normals in a way
+    one convention slip explains: it is mirrored (a light-direction axis flipped, or
+    ``camera.mosaic.angles`` reversed), or the normals point inward at the silhouette (x and y of the
+    lights both flipped); the message names the flip that fits."""
+
+
+class FrameOrderWarning(SuspiciousInputWarning):
+    """The frames' s0 fits the declared lights far better in another order: frames and lights are
+    paired wrongly (shuffled file names, a rig that fired in another order); the message lists which
+    frame looks lit by which light — fix ``lights[*].frame`` in capture.yaml."""
+
+
+class BitDepthWarning(SuspiciousInputWarning):
+    """The counts do not fill the declared ``camera.bit_depth``: low-bit data declared deeper (12-bit
+    counts declared 16-bit), or high-bit aligned data of a shallower ADC; the message names the bits
+    the data look like and the fix (data deeper than declared are refused: a count above full scale)."""
+
+
+class ParameterBoundWarning(PolarshapeWarning):
+    """A fitted material parameter sits at the edge of the range the solver searches (e.g. β at 6, k_s
+    at 0): the fit pushed against its limits because the model cannot explain the data as given —
+    usually wrong inputs (see :class:`FitResidualWarning`), sometimes a material outside the model."""
+
+
+class FilledPixelsWarning(PolarshapeWarning):
+    """A large fraction of the mask has too few usable observations and took its neighbours' normal
+    and albedo (filled.png): more lights, a better exposure or a tighter mask."""
+
+
+class FrozenPixelsWarning(PolarshapeWarning):
+    """Most normals of the FMBRDF fit did not move from their photometric-stereo start: the joint fit
+    did not run where it should (a fixed material that cannot explain the data, too few iterations)."""
+
+
+class ModelEvidenceWarning(PolarshapeWarning):
+    """On the lights held out of the fit, the Lambertian model predicts the photographs better than the
+    FMBRDF the run used: the FMBRDF fit is not trustworthy here (params.json ``validation``)."""
+
+
+class SelfCheckError(PolarshapeError, RuntimeError):
+    """``polarshape run --strict``: a self-check warned. The result folder is still written (to look
+    at); the message names the warnings and the folder. Exit status 4."""
 
 
 class DeviceError(PolarshapeError, RuntimeError):

@@ -69,13 +69,14 @@ from polarshape.recover.material_fit import (
 )
 from polarshape.recover.observations import Observations, flatten_observations
 from polarshape.recover.preprocess import capture_camera, preprocess_capture
+from polarshape.report import MODEL_NAMES, PARAMETER_MEANINGS
 from polarshape.scene.geometry import MeshShape
 from polarshape.scene.raycast import rasterize, superpixel_ground_truth
 
 logger = logging.getLogger(__name__)
 
 __all__ = [
-    "ALL_SITES_SHRINK_PX", "MESH_SUFFIXES", "MIN_COS_LIGHT", "MIN_COS_VIEW", "PARAMETER_MEANINGS", "MeasureResult",
+    "ALL_SITES_SHRINK_PX", "MESH_SUFFIXES", "MIN_COS_LIGHT", "MIN_COS_VIEW", "MeasureResult",
     "load_pose", "measure_material", "measure_table", "mesh_normals", "normals_from_file", "select_frames", "sphere_normals",
 ]
 
@@ -98,27 +99,6 @@ MIN_COS_LIGHT = 0.2
 
 #: Mesh files ``--shape`` accepts (with ``--pose``).
 MESH_SUFFIXES: tuple[str, ...] = (".ply", ".obj", ".stl", ".off", ".glb")
-
-#: What each parameter means, for the report's table (units: :data:`polarshape.io.material.MATERIAL_UNITS`).
-PARAMETER_MEANINGS: dict[str, str] = {
-    "ior": "index of refraction μ of the dielectric (sets the Fresnel factors, hence the DoLP)",
-    "alpha": "roughness: width of the microfacet distribution (FMBRDF α; Baek: GGX α)",
-    "beta": "shape of the FMBRDF microfacet distribution (2 ≈ Gaussian, < 1 heavy tails)",
-    "kappa": "microfacet correlation κ (0 = random placement); shapes the body lobe",
-    "k_s": "surface (specular) albedo",
-    "k_b": "body (diffuse) albedo",
-    "r_k": "albedo ratio r_k = k_b / k_s (what the paper reports)",
-    "k_d": "diffuse albedo",
-    "sigma": "Oren–Nayar roughness σ",
-    "roughness": "Torrance–Sparrow Beckmann RMS slope m",
-}
-
-_MODEL_TITLES: dict[str, str] = {
-    "fmbrdf": "FMBRDF (ours)", "baek": "Baek et al. 2018 pBRDF", "l_ts": "Lambertian + Torrance–Sparrow",
-    "on_ts": "Oren–Nayar + Torrance–Sparrow", "lambertian": "Lambertian", "oren_nayar": "Oren–Nayar",
-    "torrance_sparrow": "Torrance–Sparrow",
-}
-
 
 @dataclass(frozen=True)
 class MeasureResult:
@@ -414,7 +394,7 @@ def _plot_curves(folder: Path, normals: torch.Tensor, obs: Observations, fits: d
         ax.plot(mid, _binned(xs, ys, edges), "k-", lw=2, label="observed (median)")
         for model, fit in fits.items():
             fitted = value(render_model(model, fit.params, normals, obs))[valid]
-            ax.plot(mid, _binned(xs, fitted, edges), "--", lw=1.5, label=_MODEL_TITLES.get(model, model))
+            ax.plot(mid, _binned(xs, fitted, edges), "--", lw=1.5, label=MODEL_NAMES.get(model, model))
         ax.set_xlabel(xlabel)
         ax.set_ylabel("intensity s0 (fraction of full scale)" if quantity == "s0" else "DoLP")
         ax.legend(fontsize=7)
@@ -430,7 +410,7 @@ def _plot_held_out(folder: Path, held_out: dict[str, HeldOutErrors]) -> str:
     names = list(held_out)
     ax.bar(np.arange(len(names)) - 0.2, [held_out[m].mean_relative_rmse for m in names], 0.4, label="intensity s0")
     ax.bar(np.arange(len(names)) + 0.2, [held_out[m].mean_dolp_relative_rmse for m in names], 0.4, label="DoLP")
-    ax.set_xticks(np.arange(len(names)), [_MODEL_TITLES.get(m, m) for m in names], fontsize=7)
+    ax.set_xticks(np.arange(len(names)), [MODEL_NAMES.get(m, m) for m in names], fontsize=7)
     ax.set_ylabel("held-out relative RMSE (mean over frames)")
     ax.legend(fontsize=7)
     fig.tight_layout()
@@ -454,14 +434,14 @@ def _write_report(folder: Path, normals: torch.Tensor, obs: Observations, fits: 
              f"material.json holds <b>{material.model}</b>; best model: <b>{ranking[0]}</b>.</p>",
              "<h2>Fits</h2>",
              _table(["model", "eq. 25 loss", "s0 RMS", "s0 relative RMSE", "DoLP relative RMSE", "seconds"],
-                    [[_MODEL_TITLES.get(m, m), f"{fits[m].loss:.4g}", f"{fits[m].residual_rms:.4g}",
+                    [[MODEL_NAMES.get(m, m), f"{fits[m].loss:.4g}", f"{fits[m].residual_rms:.4g}",
                       f"{fits[m].relative_rmse:.4f}", f"{fits[m].dolp_relative_rmse:.4f}", f"{fits[m].seconds:.1f}"]
                      for m in ranking if m in fits])]
     parts.append("<h2>Parameters</h2>")
     for m, fit in fits.items():
-        parts.append(f"<h3>{html.escape(_MODEL_TITLES.get(m, m))}</h3>")
+        parts.append(f"<h3>{html.escape(MODEL_NAMES.get(m, m))}</h3>")
         parts.append(_table(["parameter", "value", "meaning", "unit"],
-                            [[k, f"{v:.5g}", PARAMETER_MEANINGS.get(k, ""), MATERIAL_UNITS.get(k, "1")]
+                            [[k, f"{v:.5g}", PARAMETER_MEANINGS.get(k, ("", "", ""))[1], MATERIAL_UNITS.get(k, "1")]
                              for k, v in fit.params.items()]))
     parts.append("<h2>Observed and fitted curves</h2>")
     parts += [f"<img src='{p}'>" for p in pngs]
@@ -469,7 +449,7 @@ def _write_report(folder: Path, normals: torch.Tensor, obs: Observations, fits: 
         parts.append("<h2>Held-out frames (each predicted from a fit to the others; Fig. 7's metric)</h2>")
         frames = next(iter(held_out.values())).frames
         parts.append(_table(["model", *[f"frame {f}" for f in frames], "mean s0", "mean DoLP"],
-                            [[_MODEL_TITLES.get(m, m), *[f"{e:.4f}" for e in h.relative_rmse],
+                            [[MODEL_NAMES.get(m, m), *[f"{e:.4f}" for e in h.relative_rmse],
                               f"{h.mean_relative_rmse:.4f}", f"{h.mean_dolp_relative_rmse:.4f}"]
                              for m, h in held_out.items()]))
         parts.append(f"<img src='{_plot_held_out(folder, held_out)}'>")

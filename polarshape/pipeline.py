@@ -10,6 +10,11 @@ params.json records both):
 3. ``recovery`` — :func:`polarshape.normals.recover_normals`: initial normals (robust Lambertian
    PS), model choice, the FMBRDF joint fit or the Lambertian answer (with ``recovery.material``:
    a known material, fixed or as the start; params.json's ``material`` records which);
+   ``validation`` — :func:`validate`: fit without a few lights, predict them, compare the models
+   (params.json's ``validation``; :mod:`polarshape.recover.validation`);
+   ``checks`` — :func:`polarshape.recover.selfcheck.run_self_checks`: fit residual against the noise,
+   conventions, frame order, parameter bounds, filled/frozen pixels, model evidence, each a named
+   warning (params.json's ``checks``; ``strict``: an error once the result is written);
 4. ``integration`` — :func:`integrate`: depth from the normals (:mod:`polarshape.surface.integrate`);
 5. ``mesh`` — :func:`build_meshes`: grid mesh of the depth map (and screened Poisson if asked);
 6. ``export`` — result files (:func:`polarshape.io.results.write_maps`);
@@ -44,7 +49,7 @@ from tqdm import tqdm
 from polarshape import __version__
 from polarshape.cameras import Camera
 from polarshape.config import RunConfig
-from polarshape.errors import CaptureError, ConfigError, PipelineError, PolarshapeWarning
+from polarshape.errors import CaptureError, ConfigError, PipelineError, PolarshapeWarning, SelfCheckError
 from polarshape.io.export import write_npy
 from polarshape.io.material import load_material
 from polarshape.imaging.demosaic import stokes_from_mosaic
@@ -58,7 +63,9 @@ from polarshape.normals import NormalsResult, recover_normals
 from polarshape.recover.diagnose import dark_capture_cause
 from polarshape.recover.observations import RecoveryInputs
 from polarshape.recover.preprocess import capture_camera, preprocess_capture
-from polarshape.report import ReportData, write_report
+from polarshape.recover.selfcheck import run_self_checks
+from polarshape.recover.validation import Validation, model_evidence, validate_holdout
+from polarshape.report import ReportData, material_truth, rewrite_report_page, write_report
 from polarshape.surface.integrate import IntegrationReport, integrate_normals
 from polarshape.surface.mesh import FRAME_AXES, MESH_FRAMES, depth_to_mesh, mesh_file_checks, poisson_mesh, write_mesh
 
@@ -66,10 +73,11 @@ logger = logging.getLogger(__name__)
 
 __all__ = [
     "STAGES", "PipelineError", "PipelineResult", "Surface", "acquire", "build_meshes", "evaluate", "integrate",
-    "preprocess", "run_pipeline",
+    "preprocess", "run_pipeline", "validate",
 ]
 
-STAGES: tuple[str, ...] = ("input", "preprocess", "recovery", "integration", "mesh", "export", "evaluation", "report")
+STAGES: tuple[str, ...] = ("input", "preprocess", "recovery", "validation", "checks", "integration", "mesh", "export",
+                           "evaluation", "report")
 
 
 @dataclass(frozen=True)
@@ -358,6 +366,43 @@ def build_meshes(work: Path, result: NormalsResult, surface: Surface, config: Ru
     return info
 
 
+# --- validation --------------------------------------------------------------------------------
+
+
+def validate(inputs: RecoveryInputs, result: NormalsResult, config: RunConfig, log: _StageLog
+             ) -> tuple[NormalsResult, Validation]:
+    """Held-out-light validation (:func:`polarshape.recover.validation.validate_holdout`) and
+    ``recovery.model: auto``'s use of it (:func:`~polarshape.recover.validation.model_evidence`): when
+    the other of fmbrdf / lambertian predicts the held-out lights clearly better, the run is redone
+    with it (the returned result)."""
+    validation = validate_holdout(inputs, result, config.recovery, config.initial_normals, config.validation,
+                                  seed=config.seed)
+    if not validation.ran or validation.reason:
+        log.skip("validation", validation.reason or "no light held out")
+    if not validation.ran:
+        return result, validation
+    choice = validation.model_choice = model_evidence(validation, result.model, config.recovery.model)
+    if choice is None or choice["switch_to"] is None:
+        return result, validation
+    switch = choice["switch_to"]
+    logger.info("validation: %s", choice["verdict"])
+    log.skip("validation", f"recovery.model auto: {choice['verdict']}")
+    redone = recover_normals(inputs, config.recovery.model_copy(update={"model": switch}), config.initial_normals,
+                             seed=config.seed, progress=config.progress)
+    for item in redone.skipped:
+        log.skip("recovery", item)
+    validation.predicted = validation.predictions.get(switch, validation.predicted)
+    return redone, validation
+
+
+def _holdout_fields(validation: Validation | None) -> dict[str, Any]:
+    """ReportData's held-out fields (empty when the validation did not run)."""
+    if validation is None or not validation.ran:
+        return {}
+    return {"holdout_lights": list(validation.holdout), "holdout_observed": validation.observed,
+            "holdout_predicted": validation.predicted}
+
+
 # --- evaluation --------------------------------------------------------------------------------
 
 
@@ -399,16 +444,73 @@ def evaluate(capture: Capture, result: NormalsResult, surface: Surface, log: _St
 # --- params.json, report -----------------------------------------------------------------------
 
 
-def _summary_line(out: Path, result: NormalsResult, metrics: dict[str, Any], total_s: float) -> str:
-    parts = [f"result in {out}", f"model {result.model}", f"{int(result.mask.sum())} px"]
+def _what_ran(result: NormalsResult, params: dict[str, Any], has_polarisation: bool) -> str:
+    """The model that actually ran, and why when it was not the one asked for."""
+    if result.model == "fmbrdf":
+        return "model fmbrdf" if has_polarisation else "intensity-only FMBRDF: no polarisation above noise"
+    choice = (params.get("validation") or {}).get("model_choice") or {}
+    if choice.get("switch_to") == "lambertian":
+        return "lambertian (auto: predicts the held-out lights better than fmbrdf)"
+    if any("model 'lambertian' chosen" in item for item in result.skipped):
+        return "lambertian (auto: Lambertian PS explains the data, no polarisation)"
+    return f"model {result.model}"
+
+
+def _held_out_part(params: dict[str, Any], model: str) -> str | None:
+    """"held-out s0 error 2.1 % (noise 1.9 %)" of the run's model, or why there is none."""
+    validation = params.get("validation")
+    if not validation or validation.get("mode") == "none":  # none: the user's choice, nothing to report
+        return None
+    record = (validation.get("models") or {}).get(model) or {}
+    error, floor = record.get("s0_rel_rmse"), validation.get("noise_floor_s0_rel")
+    if error is None:
+        return f"no held-out validation ({validation['reason']})" if validation.get("reason") else None
+    noise = f" (noise {100 * floor:.1f} %)" if floor is not None else ""
+    return f"held-out s0 error {100 * error:.1f} %{noise}"
+
+
+def _warnings_part(warned: list[str]) -> str | None:
+    """"2 warnings: FitResidualWarning, ConventionWarning" (each kind once), or None without any."""
+    kinds = list(dict.fromkeys(w.partition(": ")[0] for w in warned))
+    if not warned:
+        return None
+    return f"{len(warned)} warning{'s' if len(warned) != 1 else ''}: {', '.join(kinds)}"
+
+
+def _summary_line(out: Path, result: NormalsResult, metrics: dict[str, Any], total_s: float, *,
+                  params: dict[str, Any] | None = None, has_polarisation: bool = True,
+                  warned: list[str] | None = None) -> str:
+    """One line: where, what ran, held-out error, ground-truth errors (if any), warnings, time."""
+    params = params or {}
+    parts = [f"result in {out}", _what_ran(result, params, has_polarisation), f"{int(result.mask.sum())} px"]
+    held_out = _held_out_part(params, result.model)
+    if held_out:
+        parts.append(held_out)
     normal = metrics.get("normals", {})
     if "mean_deg" in normal:
         parts.append(f"normal error mean {normal['mean_deg']:.2f}° median {normal['median_deg']:.2f}° vs ground truth")
     depth = metrics.get("depth", {})
     if "rmse" in depth:
         parts.append(f"depth RMSE {depth['rmse']:.3g} ({100 * depth['relative']:.2f} % of range, scale/offset aligned)")
+    warned_part = _warnings_part(list(warned or []))
+    if warned_part:
+        parts.append(warned_part)
     parts.append(f"{total_s:.1f} s")
     return "; ".join(parts)
+
+
+def _material_fixed(config: RunConfig) -> bool:
+    """Whether ``recovery.material`` fixes the material (nothing fitted: no parameter-bound check)."""
+    return config.recovery.material is not None and config.recovery.material_use == "fixed"
+
+
+def _strict_failure(params: dict[str, Any], out: Path) -> SelfCheckError | None:
+    """``--strict``: the error naming the self-check warnings of ``params["checks"]`` (None without any)."""
+    found = (params.get("checks") or {}).get("warnings") or []
+    if not found:
+        return None
+    names = ", ".join(dict.fromkeys(w["name"] for w in found))
+    return SelfCheckError(f"self-check failed: {names}: {found[0]['message']} (result kept in {out})")
 
 
 def _capture_source(capture: Capture, config: RunConfig, work: Path, out: Path) -> str:
@@ -471,17 +573,22 @@ def _params(config: RunConfig, capture: Capture, inputs: RecoveryInputs, result:
 
 
 def _report(work: Path, config: RunConfig, inputs: RecoveryInputs, result: NormalsResult, params: dict[str, Any],
-            error_map: np.ndarray | None, log: _StageLog) -> None:
+            error_map: np.ndarray | None, log: _StageLog, surface: Surface, capture: Capture, *,
+            validation: Validation | None = None) -> ReportData | None:
+    """Write the report; returns what it showed (None when disabled), for :func:`rewrite_report_page`."""
     if not config.report.enabled:
         log.skip("report", "report.enabled is false")
-        return
+        return None
     data = ReportData(
         normals=to_numpy(result.normals), albedo=to_numpy(result.albedo), mask=to_numpy(result.mask),
         observed=to_numpy(result.observed), rendered=to_numpy(result.rendered), lights=to_numpy(inputs.lights),
         irradiance=to_numpy(inputs.irradiance), view=to_numpy(inputs.view), valid=to_numpy(inputs.valid),
         params=params, error_map=error_map, seed=config.seed, max_curve_pixels=config.report.max_curve_pixels,
+        depth=surface.depth, truth=material_truth(capture.ground_truth.get("scene")),
+        **_holdout_fields(validation),
     )
     params["report"] = [f.name for f in write_report(work, data, fmt=config.report.format)]
+    return data
 
 
 # --- the run -----------------------------------------------------------------------------------
@@ -493,6 +600,8 @@ def run_pipeline(
     *,
     overwrite: bool = False,
     config_path: str | os.PathLike[str] | None = None,
+    log_file: str | None = None,
+    strict: bool = False,
 ) -> PipelineResult:
     """Run every stage and write the result folder atomically (module docstring: stages and files).
 
@@ -501,6 +610,11 @@ def run_pipeline(
         out_dir: the result folder (default ``config.output``).
         overwrite: replace an existing result folder (never an input capture).
         config_path: the configuration file, protected from being overwritten.
+        log_file: a file name (e.g. ``run.log``) inside the result folder that receives this run's
+            records of the ``polarshape`` logger at INFO and above (as far as its level lets them
+            through); written in the temporary folder, so it is part of the atomic result.
+        strict: a self-check warning (params.json ``checks``) becomes a :class:`SelfCheckError`, raised
+            after the result folder is complete (it is kept: the user wants to look at it).
 
     Returns:
         :class:`PipelineResult` (folder, one-line summary, params.json content).
@@ -511,6 +625,7 @@ def run_pipeline(
         OutputExistsError: the folder exists and ``overwrite`` is False; or it is, holds or lies inside
             an input; or it exists and is not a polarshape result (``overwrite`` replaces results only).
         PipelineError, CaptureError, ValueError: a stage cannot run (message names the fix).
+        SelfCheckError: ``strict`` and a self-check warned (the result folder is written).
     """
     t_start = time.perf_counter()
     target = out_dir if out_dir is not None else config.output
@@ -524,12 +639,34 @@ def run_pipeline(
     log = _StageLog(config.progress)
     try:
         refusal = lambda p: output_refusal(p, inputs_paths, overwrite=overwrite)  # noqa: E731
-        with atomic_directory(out, overwrite=overwrite, protect=refusal) as work, _recorded_warnings() as warned:
+        with atomic_directory(out, overwrite=overwrite, protect=refusal) as work, _recorded_warnings() as warned, \
+                _logged_to(work / log_file if log_file else None):
             params = _run_stages(config, work, out, device, log, t_start, warned)
     finally:
         log.close()
     logger.info("result written to %s (%.1f s)", out, params["timings_s"]["total"])
+    failure = _strict_failure(params, out) if strict else None
+    if failure is not None:
+        raise failure
     return PipelineResult(out_dir=out, summary=params["summary"], params=params)
+
+
+@contextlib.contextmanager
+def _logged_to(path: Path | None) -> Iterator[None]:
+    """While inside, the ``polarshape`` logger's records at INFO and above also go to ``path`` (None: nowhere)."""
+    if path is None:
+        yield
+        return
+    handler = logging.FileHandler(path, encoding="utf-8")
+    handler.setLevel(logging.INFO)
+    handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    package = logging.getLogger("polarshape")
+    package.addHandler(handler)
+    try:
+        yield
+    finally:
+        package.removeHandler(handler)
+        handler.close()
 
 
 @contextlib.contextmanager
@@ -562,6 +699,11 @@ def _run_stages(config: RunConfig, work: Path, out: Path, device: str, log: _Sta
                                  progress=config.progress)
         for item in result.skipped:
             log.skip("recovery", item)
+    with log.stage("validation"):
+        result, validation = validate(inputs, result, config, log)
+    with log.stage("checks"):
+        checks = run_self_checks(capture, inputs, result, validation.as_dict() if validation.ran else None,
+                                 earlier=list(warned), fitted_material=not _material_fixed(config))
     with log.stage("integration"):
         surface = integrate(result, camera, config)
     with log.stage("mesh"):
@@ -578,10 +720,17 @@ def _run_stages(config: RunConfig, work: Path, out: Path, device: str, log: _Sta
         if error_map is not None:
             write_npy(error_map.astype(np.float32), work / "error_map.npy")
     params = _params(config, capture, inputs, result, surface, mesh_info, metrics, device, work, out)
-    params["summary"] = _summary_line(out, result, metrics, time.perf_counter() - t_start)
+    params["validation"] = validation.as_dict()
+    params["checks"] = checks.as_dict()
+    params["summary"] = _summary_line(out, result, metrics, time.perf_counter() - t_start, params=params,
+                                      has_polarisation=inputs.has_polarisation, warned=warned)
     with log.stage("report"):
-        _report(work, config, inputs, result, params, error_map, log)
+        report_data = _report(work, config, inputs, result, params, error_map, log, surface, capture,
+                              validation=validation)
     total = time.perf_counter() - t_start
     params.update(timings_s={**log.timings, "total": total}, skipped=log.skipped, warnings=list(warned),
-                  summary=_summary_line(out, result, metrics, total))
+                  summary=_summary_line(out, result, metrics, total, params=params,
+                                        has_polarisation=inputs.has_polarisation, warned=warned))
+    if report_data is not None and config.report.format == "html":  # the page again, with the final timings
+        rewrite_report_page(work, report_data)
     return write_params(work, params)

@@ -28,6 +28,19 @@ def require_aravis() -> None:
 
 
 @pytest.fixture(scope="session")
+def require_ray() -> object:
+    """The ``ray`` module; skip the test when Ray is not installed — unless POLARSHAPE_REQUIRE_RAY=1
+    (set by CI, which installs the 'cluster' extra), where that is a failure."""
+    try:
+        import ray
+    except ImportError as exc:
+        if os.environ.get("POLARSHAPE_REQUIRE_RAY") == "1":
+            pytest.fail(f"POLARSHAPE_REQUIRE_RAY=1 but Ray is not installed: {exc}")
+        pytest.skip(f"Ray not installed (pip install -e '.[cluster]'): {exc}")
+    return ray
+
+
+@pytest.fixture(scope="session")
 def render_sphere() -> Callable[..., Path]:
     """Render the shipped sphere scene (configs/scenes/sphere.yaml) into a capture folder:
     ``render_sphere(folder, width=, pixel_size_m=, lights=, seed=, material=None, edit=None) -> folder / "capture"``

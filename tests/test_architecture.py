@@ -24,7 +24,7 @@ STAGES: tuple[tuple[str, ...], ...] = (
     ("surface",),
     ("report",),
     ("config", "pipeline", "measure"),
-    ("cli",),
+    ("cli", "batch"),
 )
 
 

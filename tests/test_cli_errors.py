@@ -106,7 +106,7 @@ def test_help_ends_with_the_exit_status_table(argv: list[str], capsys: pytest.Ca
     out = capsys.readouterr().out
     table = out[out.index("exit status:"):]
     rows = [line.split()[0] for line in table.splitlines()[1:] if line.strip()]
-    assert rows == ["0", "1", "2", "3", "130", "143"]
+    assert rows == ["0", "1", "2", "3", "4", "130", "143"]
     assert "  3    cannot run: a stage failed, the disk is full or not writable, no CUDA" in table
     assert EXIT_STATUS_HELP in out
 
@@ -114,7 +114,7 @@ def test_help_ends_with_the_exit_status_table(argv: list[str], capsys: pytest.Ca
 def test_the_module_docstring_and_the_table_agree() -> None:
     import polarshape.cli.errors as errors_module
 
-    for status in ("0", "1", "2", "3", "130", "143"):
+    for status in ("0", "1", "2", "3", "4", "130", "143"):
         assert f"* {status} —" in errors_module.__doc__ and f"  {status} " in EXIT_STATUS_HELP
     assert exit_status(DeviceError("x")) == 3 and exit_status(OutputWriteError("x")) == 3
     assert exit_status(OutputPathError("x")) == 2

@@ -26,6 +26,7 @@ KINDS = [
     (errors.DeviceError, RuntimeError),
     (errors.OutputWriteError, OSError),
     (errors.OutputPathError, NotADirectoryError),
+    (errors.SelfCheckError, RuntimeError),
 ]
 
 
@@ -43,7 +44,9 @@ def test_all_lists_every_kind() -> None:
         k.__name__ for k in WARNINGS}
 
 
-WARNINGS = [errors.PolarshapeWarning, errors.SuspiciousInputWarning]
+WARNINGS = [errors.PolarshapeWarning, errors.SuspiciousInputWarning, errors.FitResidualWarning, errors.ConventionWarning,
+            errors.FrameOrderWarning, errors.BitDepthWarning, errors.ParameterBoundWarning, errors.FilledPixelsWarning,
+            errors.FrozenPixelsWarning, errors.ModelEvidenceWarning]
 
 
 @pytest.mark.parametrize("kind", WARNINGS)

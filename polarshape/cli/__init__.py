@@ -6,8 +6,9 @@ Sub-commands (one ``_cmd_<name>(args) -> int`` each, registered in :func:`build_
   (capture-format.md) with the simulated camera, ground truth included.
 * ``demo --out DIR [--overwrite]`` — the forward-model demo (a sphere under one light).
 * ``inspect FRAME`` — DoLP and AoLP of one raw mosaic.
-* ``run``, ``capture``, ``calibrate``, ``import``, ``material`` — see :mod:`polarshape.cli.run`,
-  :mod:`polarshape.cli.acquisition`, :mod:`polarshape.cli.importing` and :mod:`polarshape.cli.material`.
+* ``run``, ``capture``, ``calibrate``, ``import``, ``material``, ``batch`` — see :mod:`polarshape.cli.run`,
+  :mod:`polarshape.cli.acquisition`, :mod:`polarshape.cli.importing`, :mod:`polarshape.cli.material` and
+  :mod:`polarshape.cli.batch`.
 
 Every command takes ``-v``/``--verbose`` (count: ``-vv`` is debug) and ``-q``/``--quiet`` (no
 progress bars) before or after its name, and the counts add up (``polarshape -v run cfg.yaml -v``
@@ -239,6 +240,9 @@ def build_parser() -> argparse.ArgumentParser:
     from polarshape.cli.material import add_parsers as add_material_parsers
 
     add_material_parsers(sub)
+    from polarshape.cli.batch import add_parsers as add_batch_parsers
+
+    add_batch_parsers(sub)
     for path, each in iter_commands(parser):
         add_output_options(each, len(path))
     _with_exit_status_help(parser)

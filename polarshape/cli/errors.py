@@ -13,6 +13,8 @@ handlers themselves never catch errors. Exit statuses (:data:`EXIT_STATUS_HELP`,
   :class:`~polarshape.errors.DeviceError` (no CUDA), :class:`~polarshape.errors.OutputWriteError`
   (the disk is full or the folder is not writable), and a builtin ``OSError`` saying so (ENOSPC,
   EDQUOT, EROFS);
+* 4 — ``polarshape run --strict``: a self-check warned (:class:`~polarshape.errors.SelfCheckError`);
+  the result folder is written before, so it can be looked at;
 * a builtin ``ValueError`` or ``OSError`` (a bad value or an unreadable file that no polarshape
   check named): ``builtin_status``, 2 unless the command says otherwise (``run``: 3, a stage failed);
 * 130 — interrupted by Ctrl-C (:func:`polarshape.cli.main`); nothing half-written is kept;
@@ -31,7 +33,9 @@ import sys
 from collections.abc import Callable
 from typing import Any
 
-from polarshape.errors import DeviceError, OutputExistsError, OutputWriteError, PipelineError, PolarshapeError
+from polarshape.errors import (
+    DeviceError, OutputExistsError, OutputWriteError, PipelineError, PolarshapeError, SelfCheckError,
+)
 
 __all__ = ["EXIT_STATUS", "EXIT_STATUS_HELP", "exit_status", "reports_errors"]
 
@@ -41,6 +45,7 @@ logger = logging.getLogger(__name__)
 #: OutputExistsError comes before its base class).
 EXIT_STATUS: tuple[tuple[type[PolarshapeError], int], ...] = (
     (OutputExistsError, 1),
+    (SelfCheckError, 4),
     (PipelineError, 3),
     (DeviceError, 3),
     (OutputWriteError, 3),
@@ -56,6 +61,7 @@ EXIT_STATUS_HELP = """exit status:
   1    refused: would write over an existing folder, an input, or not ours
   2    invalid input: configuration, scene, capture, image or argument
   3    cannot run: a stage failed, the disk is full or not writable, no CUDA
+  4    self-check failed (polarshape run --strict); the result folder is kept
   130  interrupted (Ctrl-C); nothing half-written is kept
   143  terminated (SIGTERM); nothing half-written is kept"""
 

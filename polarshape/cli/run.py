@@ -63,7 +63,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
         updates["progress"] = False
     if updates:
         config = config.model_copy(update=updates)
-    result = run_pipeline(config, args.out, overwrite=args.overwrite, config_path=args.config)
+    result = run_pipeline(config, args.out, overwrite=args.overwrite, config_path=args.config,
+                          strict=getattr(args, "strict", False))
     print(result.summary)
     return 0
 
@@ -84,5 +85,8 @@ def add_parsers(sub: Any) -> None:
     run.add_argument("--overwrite", action="store_true", help="replace an existing result folder (never an input)")
     run.add_argument("--device", choices=["auto", "cpu", "cuda"], default=None,
                      help="torch device (default: device: in the config, auto = cuda when available)")
+    run.add_argument("--strict", action="store_true",
+                     help="a self-check warning (fit residual, conventions, frame order, bounds, ...) is an error: "
+                     "the result folder is still written, the command exits with status 4")
     add_output_options(run, depth=1)  # -v/-q here too, so that this parser works on its own
     run.set_defaults(handler=_cmd_run)

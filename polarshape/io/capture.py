@@ -28,7 +28,7 @@ import numpy as np
 import yaml
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from polarshape.errors import CaptureError, SuspiciousInputWarning
+from polarshape.errors import BitDepthWarning, CaptureError
 from polarshape.imaging.mosaic import CHANNEL_ANGLES_DEG, MakerAngles, MosaicLayout
 from polarshape.imaging.pixels import BIT_DEPTHS, left_shift_of, max_count, reduce_mask_to_superpixels
 from polarshape.io.atomic import atomic_directory, atomic_write_text
@@ -362,7 +362,7 @@ def _check_alignment(frames: np.ndarray, where: str) -> None:
                     "taken at 65520", where)
     elif shift:
         bits = 16 - shift
-        warnings.warn(SuspiciousInputWarning(
+        warnings.warn(BitDepthWarning(
             f"{where}: every count is a multiple of {1 << shift} and the largest is {int(frames.max())}: these look "
             f"like {bits}-bit counts left-shifted by {shift} (high-bit aligned) declared camera.bit_depth 16, so "
             f"sites clipped at {max_count(bits) << shift} are not flagged as saturated (16-bit clipping is taken at "

@@ -30,7 +30,7 @@ Warned (:class:`~polarshape.errors.SuspiciousInputWarning`; the run goes on):
 
 - two lights at one place (directions < 0.5° apart, positions < 1 mm apart), two bit-identical frames;
 - the brightest count below 1/16 of full scale (low-bit data declared at a higher ``bit_depth``,
-  or an exposure far too short).
+  or an exposure far too short): a :class:`~polarshape.errors.BitDepthWarning`.
 """
 
 from __future__ import annotations
@@ -45,7 +45,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from polarshape.errors import CaptureError, SuspiciousInputWarning
+from polarshape.errors import BitDepthWarning, CaptureError, SuspiciousInputWarning
 from polarshape.imaging.demosaic import stokes_from_mosaic
 from polarshape.imaging.pixels import counts_to_float, max_count, reduce_mask_to_superpixels, saturation_count
 from polarshape.io.capture import Capture
@@ -121,8 +121,10 @@ def check_observations(
     _check_lights_in_front(capture, region, points)
     _check_usable(capture, inputs.valid.cpu(), region, dark.cpu(), saturated.cpu(), dark_threshold, saturation_margin)
     _check_light_changes(capture, inputs)
-    for message in (*_coincident_lights(capture), *_identical_frames(capture), *_low_counts(capture)):
+    for message in (*_coincident_lights(capture), *_identical_frames(capture)):
         warnings.warn(SuspiciousInputWarning(message), stacklevel=2)
+    for message in _low_counts(capture):  # a named kind: the self-checks list it (polarshape.recover.selfcheck)
+        warnings.warn(BitDepthWarning(message), stacklevel=2)
 
 
 def _check_lights_in_front(capture: Capture, region: Tensor, points: np.ndarray | None) -> None:

@@ -18,6 +18,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from polarshape.recover.noise import NoiseModel
+
 __all__ = ["Observations", "RecoveryInputs", "crop_inputs", "downsample_inputs", "flatten_observations", "paste_crop"]
 
 
@@ -41,6 +43,8 @@ class RecoveryInputs:
         has_polarisation: False when the linear Stokes components hold no signal above the noise
             (no polariser, or an unpolarised scene: intensity only).
         offset: (row, column) of this grid's pixel (0, 0) in the full super-pixel grid (crops).
+        noise: σ of an observed s0 as a function of the signal, measured from the capture's four-site
+            redundancy (:func:`polarshape.recover.noise.estimate_noise`); None when not estimated.
     """
 
     stokes: Tensor
@@ -53,6 +57,7 @@ class RecoveryInputs:
     noise_std: float
     has_polarisation: bool
     offset: tuple[int, int] = (0, 0)
+    noise: NoiseModel | None = None
 
     @property
     def num_lights(self) -> int:
@@ -134,8 +139,11 @@ def downsample_inputs(inputs: RecoveryInputs) -> RecoveryInputs:
         irradiance = inputs.irradiance[:, :h2, :w2]
     else:
         irradiance = _pool(inputs.irradiance, h2, w2)
+    # 2×2 means: ¼ of the variance (exact for independent pixels; neighbours of a bilinear demosaic
+    # are correlated, so an underestimate there, as with noise_std / 2)
+    noise = None if inputs.noise is None else inputs.noise.scaled(0.25)
     return RecoveryInputs(stokes, valid & mask, sat, mask, lights, irradiance, view, inputs.noise_std / 2,
-                          inputs.has_polarisation, inputs.offset)
+                          inputs.has_polarisation, inputs.offset, noise)
 
 
 def crop_inputs(inputs: RecoveryInputs, margin: int = 0) -> RecoveryInputs:

@@ -17,7 +17,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validat
 from polarshape.io.material import MaterialError, load_material
 from polarshape.io.yamlfile import resolve_config_path
 
-__all__ = ["InitialNormalsOptions", "MATERIAL_USES", "RecoveryOptions"]
+__all__ = ["InitialNormalsOptions", "MATERIAL_USES", "RecoveryOptions", "VALIDATION_MODELS", "ValidationOptions"]
 
 #: What ``recovery.material_use`` may say: ``fixed`` (the material's μ, α, β, κ are not re-fitted)
 #: or ``initial`` (they start the global fit).
@@ -98,3 +98,28 @@ class RecoveryOptions(_Options):
                              "(photometric stereo has no material to fix); remove recovery.material or set "
                              "recovery.model to fmbrdf or auto")
         return self
+
+
+#: The models the held-out validation can compare (:mod:`polarshape.recover.validation`).
+VALIDATION_MODELS: tuple[str, ...] = ("fmbrdf", "lambertian", "l_ts", "baek")
+
+
+class ValidationOptions(_Options):
+    """Held-out-light validation of the run (:func:`polarshape.recover.validation.validate_holdout`):
+    fit on the other lights, predict the held-out frames, compare models on the user's own data."""
+
+    holdout: Literal["auto", "none"] | list[int] = Field(
+        "auto", description="auto: a few lights spread over the dome (when the capture has at least min_lights); "
+        "none: no validation; a list: these light indices (0-based frame order)"
+    )
+    models: list[Literal["fmbrdf", "lambertian", "l_ts", "baek"]] = Field(
+        list(VALIDATION_MODELS), min_length=1, description="models fitted without the held-out lights and compared "
+        "on them (fmbrdf warm-started from the run); unset with recovery.model lambertian: lambertian only (the "
+        "others cost an FMBRDF fit)"
+    )
+    lights: int = Field(3, ge=1, le=64, description="how many lights holdout: auto holds out")
+    min_lights: int = Field(6, ge=4, le=1000, description="holdout: auto skips the validation below this many lights")
+    max_pixels: int = Field(
+        2048, ge=64, description="most mask pixels the folds fit and predict: a regular lattice (every s-th row and "
+        "column) when the mask has more; the errors are means over them"
+    )

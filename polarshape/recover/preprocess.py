@@ -50,6 +50,7 @@ from polarshape.imaging.mosaic import MosaicLayout, split_mosaic
 from polarshape.imaging.pixels import counts_to_float, max_count, reduce_mask_to_superpixels, saturation_count
 from polarshape.io.capture import Capture
 from polarshape.recover.diagnose import check_observations, check_polarisation_signal
+from polarshape.recover.noise import demosaic_variance_factor, estimate_noise, site_redundancy
 from polarshape.recover.observations import RecoveryInputs
 
 logger = logging.getLogger(__name__)
@@ -159,13 +160,15 @@ def preprocess_capture(
     saturated = torch.empty((k, h, w), dtype=torch.bool)
     redundancy = torch.empty((k, h, w), dtype=torch.float64)  # the four-site check d (polarisation signal)
     scaled = torch.empty((k, h, w), dtype=torch.float64)  # d / √(s0 + c) (mixed blocks)
+    block_s0 = torch.empty((k, h, w), dtype=torch.float64)  # the block's own s0 (noise model)
     for i in range(k):
         mosaic = counts_to_float(frames[i], bit_depth, black, dtype=torch.float64)  # (2H, 2W)
         s = superpixel_stokes(mosaic, capture.layout, demosaic=demosaic, sample_at=sample_at)  # (3, H, W)
         stokes[i] = s if to_frames is None else sensor_plane_stokes(s, basis=to_frames)
         sites = split_mosaic(mosaic, capture.layout)  # (4, H, W) at 0°, 45°, 90°, 135°
-        dark[i] = sites.mean(-3) * 2 < dark_threshold  # the block's own s0 = ½ Σ of its four sites
-        redundancy[i] = _site_redundancy(sites)
+        block_s0[i] = sites.sum(-3) * 0.5  # the block's own s0 = ½ Σ of its four sites
+        dark[i] = block_s0[i] < dark_threshold
+        redundancy[i] = site_redundancy(sites)
         scaled[i] = _scaled_redundancy(sites)
         saturated[i] = _saturated(frames[i], bit_depth, saturation_margin, demosaic)
         del mosaic, s, sites
@@ -177,7 +180,9 @@ def preprocess_capture(
     step = 1.0 / (max_count(bit_depth) - black)
     noise_std = float(step / np.sqrt(12.0))
     has_pol = _has_polarisation(stokes, redundancy, valid, step)
-    del redundancy
+    factor = demosaic_variance_factor(lambda m: superpixel_stokes(m, capture.layout, demosaic=demosaic, sample_at=sample_at)[0])
+    noise = estimate_noise(redundancy, block_s0, valid, step=step, variance_factor=factor)
+    del redundancy, block_s0
     out = RecoveryInputs(
         stokes=stokes.to(device=device, dtype=dtype),
         valid=valid.to(device),
@@ -188,6 +193,7 @@ def preprocess_capture(
         view=view.to(device=device, dtype=dtype),
         noise_std=noise_std,
         has_polarisation=has_pol,
+        noise=noise,
     )
     del stokes
     logger.debug("preprocess: K=%d, %dx%d super-pixels, %d in mask, %d valid observations", k, h, w, int(mask.sum()), int(valid.sum()))
@@ -264,17 +270,10 @@ def _pixel_lights(capture: Capture, points: np.ndarray | None, shape: tuple[int,
     return l_pix.to(device=device, dtype=dtype), e_pix.to(device=device, dtype=dtype)
 
 
-def _site_redundancy(sites: Tensor) -> Tensor:
-    """(*, H, W) d = (I0 + I90) − (I45 + I135) of site intensities (*, 4, H, W) at 0°, 45°, 90°, 135°:
-    both sums are s0, so d is noise plus whatever differs between the four sites (an edge)."""
-    i0, i45, i90, i135 = sites.unbind(-3)
-    return (i0 + i90) - (i45 + i135)
-
-
 def _scaled_redundancy(sites: Tensor) -> Tensor:
     """(*, H, W) d / √(s0 + c) of sites (*, 4, H, W), c = 10⁻³ (see :func:`mixed_superpixels`)."""
     s0 = 0.5 * sites.sum(-3)
-    return _site_redundancy(sites) / torch.sqrt(s0.clamp_min(0.0) + 1e-3)
+    return site_redundancy(sites) / torch.sqrt(s0.clamp_min(0.0) + 1e-3)
 
 
 #: :func:`polarisation_signal` at or above this: the capture is polarised. Measured (12-bit, shot and
@@ -303,7 +302,7 @@ def polarisation_signal(linear: Tensor, sites: Tensor, valid: Tensor) -> float:
     Returns:
         The ratio (≥ 0 in practice; inf for noise-free polarised data, 0 without valid pairs).
     """
-    return _signal_ratio(*_pair_sums(linear, _site_redundancy(sites).to(torch.float64) ** 2, valid))
+    return _signal_ratio(*_pair_sums(linear, site_redundancy(sites).to(torch.float64) ** 2, valid))
 
 
 def _pair_sums(linear: Tensor, d2: Tensor, valid: Tensor) -> tuple[float, float]:
