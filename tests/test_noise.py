@@ -106,3 +106,18 @@ def test_noise_is_filled_for_a_capture_folder(two_seeds) -> None:  # noqa: ANN00
     s0 = torch.tensor([0.0, 0.5], dtype=torch.float64)
     sigma = preprocess_capture(capture).noise.std(s0)
     assert torch.isfinite(sigma).all() and bool((sigma > 0).all()) and float(sigma[1]) > float(sigma[0])
+
+
+def test_a_large_capture_is_sampled_on_rows_and_columns_of_blocks() -> None:
+    """Above max_samples the estimate uses every s-th row/column of blocks: the same model, within the
+    sampling error of the smaller sample (the full frame's cost is then that of a small capture)."""
+    gen = torch.Generator().manual_seed(1)
+    s0 = torch.linspace(0.0, 1.0, 4 * 256 * 256, dtype=torch.float64).reshape(4, 256, 256)
+    read, gain = 4e-6, 2e-4
+    d = torch.randn(s0.shape, generator=gen, dtype=torch.float64) * (4 * (read + gain * s0)).sqrt()
+    usable = torch.ones_like(s0, dtype=torch.bool)
+    full = estimate_noise(d, s0, usable, step=1 / 4095, max_samples=1 << 22)
+    sampled = estimate_noise(d, s0, usable, step=1 / 4095, max_samples=1 << 15)  # stride 16
+    assert sampled.shot_gain == pytest.approx(full.shot_gain, rel=0.05)
+    assert sampled.read_var == pytest.approx(full.read_var, rel=0.25)
+    assert sampled.shot_gain == pytest.approx(gain, rel=0.1)
