@@ -471,9 +471,9 @@ def _held_out_part(params: dict[str, Any], model: str) -> str | None:
 
 def _warnings_part(warned: list[str]) -> str | None:
     """"2 warnings: FitResidualWarning, ConventionWarning" (each kind once), or None without any."""
-    kinds = list(dict.fromkeys(w.partition(": ")[0] for w in warned))
     if not warned:
         return None
+    kinds = list(dict.fromkeys(w.partition(": ")[0] for w in warned))
     return f"{len(warned)} warning{'s' if len(warned) != 1 else ''}: {', '.join(kinds)}"
 
 

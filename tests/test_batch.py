@@ -63,6 +63,14 @@ def _rows(out: Path) -> dict[str, dict[str, str]]:
         return {row["capture"]: row for row in reader}
 
 
+def _recorded_done(out: Path) -> bool:
+    """Some capture has a result folder and summary.csv says it is done (read while a batch writes it:
+    the table is replaced atomically, so it is whole or absent)."""
+    if not list(out.glob("c*/params.json")) or not (out / "summary.csv").exists():
+        return False
+    return any(row["status"] == "done" for row in _rows(out).values())
+
+
 def test_local_batch_runs_every_capture_records_the_corrupt_one_and_resumes(
         tmp_path: Path, capture: Path, capsys: pytest.CaptureFixture[str]) -> None:
     caps, config = make_batch(tmp_path, capture, good=3)
@@ -204,7 +212,9 @@ def test_a_killed_batch_resumes_with_only_what_was_missing(tmp_path: Path, captu
            "--workers", "1", "-q"]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.monotonic() + 120
-    while proc.poll() is None and time.monotonic() < deadline and not list(out.glob("c*/params.json")):
+    # kill once the first result is in the folders *and* the tables (between the two the tables lag by
+    # one capture until the next write: the batch writes them after each outcome reaches it)
+    while proc.poll() is None and time.monotonic() < deadline and not _recorded_done(out):
         time.sleep(0.02)
     assert proc.poll() is None, "the batch ended before it could be killed"
     os.kill(proc.pid, signal.SIGKILL)

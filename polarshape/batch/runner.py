@@ -31,7 +31,7 @@ from polarshape.batch.worker import CaptureOutcome, CaptureTask
 from polarshape.checks import resolve_device
 from polarshape.config import BatchConfig
 from polarshape.errors import ConfigError, OutputExistsError
-from polarshape.io.atomic import atomic_write_text
+from polarshape.io.atomic import atomic_write_text, remove_stale_temporaries
 from polarshape.io.results import is_result_folder, output_refusal
 
 __all__ = ["BATCH_FORMAT", "BatchResult", "is_batch_folder", "run_batch"]
@@ -100,18 +100,6 @@ def _check_out(out: Path, captures: Mapping[str, Path], config_path: str | None)
     if out.is_dir() and any(out.iterdir()) and not is_batch_folder(out):
         raise OutputExistsError(f"{out} exists and is not a polarshape batch folder (no batch.json of format "
                                 f"{BATCH_FORMAT}); choose another --out, or an empty or earlier batch folder")
-
-
-def _remove_stale_temporaries(out: Path, min_age_s: float = 60.0) -> None:
-    """Remove the temporary files of the batch's own tables (``.summary.XXXX.tmp.csv``, ...) that a
-    batch killed outright (SIGKILL) left, once older than ``min_age_s``."""
-    now = time.time()
-    for name in BATCH_FILES:
-        stem, suffix = os.path.splitext(name)
-        for tmp in out.glob(f".{stem}.*.tmp{suffix}"):
-            with contextlib.suppress(OSError):
-                if now - tmp.stat().st_mtime > min_age_s:
-                    tmp.unlink()
 
 
 def _tasks(config: BatchConfig, captures: Mapping[str, Path], out: Path, *, overwrite: bool, threads: int,
@@ -184,7 +172,8 @@ def run_batch(
     else:
         workers, threads = None, threads_per_worker or 1
     out.mkdir(parents=True, exist_ok=True)
-    _remove_stale_temporaries(out)
+    for name in BATCH_FILES:  # the tables' temporaries a batch killed outright left
+        remove_stale_temporaries(out / name)
     atomic_write_text(out / "batch.json", json.dumps({
         "format": BATCH_FORMAT, "polarshape_version": __version__, "config": path, "engine": engine,
         "captures": {name: str(folder) for name, folder in captures.items()},

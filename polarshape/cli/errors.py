@@ -15,6 +15,7 @@ handlers themselves never catch errors. Exit statuses (:data:`EXIT_STATUS_HELP`,
   EDQUOT, EROFS);
 * 4 — ``polarshape run --strict``: a self-check warned (:class:`~polarshape.errors.SelfCheckError`);
   the result folder is written before, so it can be looked at;
+  ``polarshape batch``: some captures failed (the others' results and ``failed.json`` are written);
 * a builtin ``ValueError`` or ``OSError`` (a bad value or an unreadable file that no polarshape
   check named): ``builtin_status``, 2 unless the command says otherwise (``run``: 3, a stage failed);
 * 130 — interrupted by Ctrl-C (:func:`polarshape.cli.main`); nothing half-written is kept;
@@ -61,7 +62,7 @@ EXIT_STATUS_HELP = """exit status:
   1    refused: would write over an existing folder, an input, or not ours
   2    invalid input: configuration, scene, capture, image or argument
   3    cannot run: a stage failed, the disk is full or not writable, no CUDA
-  4    self-check failed (polarshape run --strict); the result folder is kept
+  4    run --strict: a self-check failed (result kept); batch: some captures failed
   130  interrupted (Ctrl-C); nothing half-written is kept
   143  terminated (SIGTERM); nothing half-written is kept"""
 

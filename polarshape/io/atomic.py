@@ -26,6 +26,7 @@ import os
 import re
 import shutil
 import tempfile
+import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
@@ -117,6 +118,22 @@ def check_destination(path: Path, overwrite: bool) -> None:
         )
 
 
+#: How :func:`atomic_path` names its temporary file beside ``path``: ``.<stem>.XXXX.tmp<suffix>``.
+_TMP_PREFIX, _TMP_SUFFIX = ".{stem}.", ".tmp{suffix}"
+
+
+def remove_stale_temporaries(path: str | os.PathLike[str], min_age_s: float = 60.0) -> None:
+    """Remove the temporary files :func:`atomic_path` made for ``path`` and a process killed outright
+    (SIGKILL) left behind, once older than ``min_age_s`` (a live writer's file is younger)."""
+    path = Path(path)
+    now = time.time()
+    pattern = _TMP_PREFIX.format(stem=path.stem) + "*" + _TMP_SUFFIX.format(suffix=path.suffix)
+    for tmp in path.parent.glob(pattern):
+        with contextlib.suppress(OSError):
+            if now - tmp.stat().st_mtime > min_age_s:
+                tmp.unlink()
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike[str], *, overwrite: bool = False) -> Iterator[Path]:
     """Yield a temporary file path beside ``path``; on success rename it to ``path``.
@@ -132,7 +149,8 @@ def atomic_path(path: str | os.PathLike[str], *, overwrite: bool = False) -> Ite
     check_destination(path, overwrite)
     _make_folder(path.parent, path)
     with _named_write_errors(path):
-        fd, tmp_name = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=path.parent)
+        fd, tmp_name = tempfile.mkstemp(prefix=_TMP_PREFIX.format(stem=path.stem),
+                                        suffix=_TMP_SUFFIX.format(suffix=path.suffix), dir=path.parent)
     tmp = Path(tmp_name)
     try:
         os.fchmod(fd, 0o666 & ~current_umask())  # mkstemp makes it 0600

@@ -40,6 +40,7 @@ __all__ = [
     "NoiseModel",
     "demosaic_variance_factor",
     "estimate_noise",
+    "noise_or_constant",
     "quantisation_noise",
     "site_redundancy",
 ]
@@ -107,6 +108,14 @@ def quantisation_noise(step: float, variance_factor: float = 1.0) -> NoiseModel:
         variance_factor: :func:`demosaic_variance_factor` of the run's demosaic.
     """
     return NoiseModel(read_var=variance_factor * step * step / 12.0, shot_gain=0.0, source="quantisation only")
+
+
+def noise_or_constant(noise: NoiseModel | None, std: float) -> NoiseModel:
+    """``noise`` when estimated, else a constant σ = ``std`` (``RecoveryInputs.noise`` / ``noise_std``:
+    the quantisation σ), labelled "quantisation only"."""
+    if noise is not None:
+        return noise
+    return NoiseModel(read_var=float(std) ** 2, shot_gain=0.0, source="quantisation only")
 
 
 def demosaic_variance_factor(to_s0: Callable[[Tensor], Tensor], size: int = 16) -> float:

@@ -75,7 +75,7 @@ from polarshape.errors import (
 )
 from polarshape.imaging.stokes import aolp, dolp
 from polarshape.io.capture import Capture
-from polarshape.recover.noise import NoiseModel
+from polarshape.recover.noise import NoiseModel, noise_or_constant
 from polarshape.recover.observations import RecoveryInputs
 from polarshape.recover.reflectometry import BOUNDS
 
@@ -159,9 +159,7 @@ class SelfChecks:
 
 
 def _noise_of(inputs: RecoveryInputs) -> NoiseModel:
-    if inputs.noise is not None:
-        return inputs.noise
-    return NoiseModel(read_var=float(inputs.noise_std) ** 2, shot_gain=0.0, source="quantisation only")
+    return noise_or_constant(inputs.noise, inputs.noise_std)
 
 
 def _interior(usable: Tensor) -> Tensor:

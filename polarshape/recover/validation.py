@@ -57,8 +57,9 @@ from polarshape.brdf.params import FMBRDFParams
 from polarshape.errors import ConfigError
 from polarshape.imaging.stokes import aolp, dolp
 from polarshape.io.material import load_material
-from polarshape.recover.coarse_to_fine import KnownMaterial, solve_fmbrdf
+from polarshape.recover.coarse_to_fine import KnownMaterial, _subsample, solve_fmbrdf  # the recovery's subsample
 from polarshape.recover.material_fit import model_parameter_bounds, relative_rmse, render_model
+from polarshape.recover.noise import noise_or_constant
 from polarshape.recover.normal_solver import NormalProblem, huber_delta, refine_normals, unit
 from polarshape.recover.observations import Observations, RecoveryInputs, crop_inputs, flatten_observations
 from polarshape.recover.options import InitialNormalsOptions, RecoveryOptions, ValidationOptions
@@ -258,9 +259,7 @@ def _choose(inputs: RecoveryInputs, vopts: ValidationOptions) -> tuple[str, list
 
 def _sigma_s0(inputs: RecoveryInputs, s0: Tensor) -> Tensor:
     """σ of observed s0 values (same shape): the capture's noise model, else its quantisation σ."""
-    if inputs.noise is not None:
-        return inputs.noise.std(s0)
-    return torch.full_like(s0, float(inputs.noise_std))
+    return noise_or_constant(inputs.noise, inputs.noise_std).std(s0)
 
 
 def _errors(pred: Tensor, obs: Tensor, valid: Tensor, sigma: Tensor, polarised_model: bool) -> dict[str, float | None]:
@@ -358,13 +357,6 @@ def _fit_shape(model: str, normals: Tensor, obs: Observations, start: dict[str, 
 
 
 # --- the folds ------------------------------------------------------------------------------
-
-
-def _subsample(p: int, n: int, seed: int, device: torch.device) -> Tensor:
-    if p <= n:
-        return torch.arange(p, device=device)
-    gen = torch.Generator().manual_seed(seed)
-    return torch.randperm(p, generator=gen)[:n].sort().values.to(device)
 
 
 def _ps(train: RecoveryInputs, initial: InitialNormalsOptions):  # noqa: ANN202 (RobustPSResult)
@@ -547,11 +539,11 @@ def validate_holdout(inputs: RecoveryInputs, result: RunResult, options: Recover
         ps_all = _ps(fit_all, initial)
         run_normals = _crop_like(result.normals, crop, stride, inputs)
         start = torch.where(torch.isfinite(run_normals), run_normals, ps_all.normals) if warm else ps_all.normals
-        start = torch.where(torch.isfinite(start), start, -crop.view)  # no normal yet: facing the camera
+        start = torch.where(torch.isfinite(start), start, crop.view)  # no normal yet: facing the camera (+V)
         fm_start, fm_params = start[pixels], FMBRDFParams()
         if warm:  # the run's material without the held-out lights
-            names = ("ior", "alpha", "beta", "kappa", "k_s", "k_b")
-            run_params = FMBRDFParams(**{n: float(result.params[n]) for n in names if n in result.params})
+            keys = ("ior", "alpha", "beta", "kappa", "k_s", "k_b")
+            run_params = FMBRDFParams(**{n: float(result.params[n]) for n in keys if n in result.params})
             fm_params = _fmbrdf_global(obs_all, fm_start, run_params, options, noise_std=noise_std,
                                        polarised=polarised, seed=seed)
         elif baselines or ("fmbrdf" in models and warm_start):  # another model's run: the FMBRDF fitted once
@@ -581,6 +573,7 @@ def validate_holdout(inputs: RecoveryInputs, result: RunResult, options: Recover
             sigma = _sigma_s0(inputs, obs[0])
             floors.append(_noise_floor(obs[0], valid, sigma))
             preds: dict[str, Tensor] = {}
+            fold_ps = None  # robust PS on the K - 1 lights: computed once per fold, for whichever model needs it
             t0 = time.perf_counter()
             fold_normals = fm_start if "fmbrdf" not in models else None
             if "fmbrdf" in models:
@@ -589,15 +582,17 @@ def validate_holdout(inputs: RecoveryInputs, result: RunResult, options: Recover
                                                         options.per_pixel_albedo)
                     preds["fmbrdf"] = _predict_fmbrdf(fold_normals, k_b, fm_params, test)
                 else:  # from scratch: the whole recovery on the K − 1 lights
-                    ps = _ps(train_in, initial)
-                    state, _ = solve_fmbrdf(train_in, torch.where(torch.isfinite(ps.normals), ps.normals, -crop.view),
+                    fold_ps = _ps(train_in, initial)
+                    state, _ = solve_fmbrdf(train_in, torch.where(torch.isfinite(fold_ps.normals), fold_ps.normals,
+                                                                  crop.view),
                                             options, seed=seed + j, material=_known(options))
                     fold_normals = state.normals[pixels]
                     preds["fmbrdf"] = _predict_fmbrdf(fold_normals, state.k_b[pixels], state.params, test)
             timed("fmbrdf", t0)
             if "lambertian" in models:
                 t0 = time.perf_counter()
-                preds["lambertian"] = _predict_lambertian(_ps(train_in, initial), pixels, test)
+                fold_ps = fold_ps if fold_ps is not None else _ps(train_in, initial)
+                preds["lambertian"] = _predict_lambertian(fold_ps, pixels, test)
                 timed("lambertian", t0)
             for m in baselines:
                 t0 = time.perf_counter()

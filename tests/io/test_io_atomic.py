@@ -22,6 +22,7 @@ from polarshape.io.atomic import (
     atomic_path,
     atomic_write_bytes,
     atomic_write_text,
+    remove_stale_temporaries,
 )
 from polarshape.io.capture import Capture, parse_capture_spec, write_capture
 
@@ -225,3 +226,20 @@ def test_a_written_capture_follows_the_umask(tmp_path: Path) -> None:
     modes = {str(p.relative_to(tmp_path)): stat.S_IMODE(p.stat().st_mode) for p in [tmp_path / "cap", *(tmp_path / "cap").rglob("*")]}
     assert modes == {name: 0o755 if (tmp_path / name).is_dir() else 0o644 for name in modes}
     assert "cap/capture.yaml" in modes and "cap/frames/000.png" in modes
+
+
+def test_stale_temporaries_of_a_killed_writer_are_removed_and_live_ones_kept(tmp_path: Path) -> None:
+    """A temporary that atomic_path made for a file and a killed process left is removed once old;
+    a young one (a live writer's), other files' temporaries and the file itself are kept."""
+    target = atomic_write_text(tmp_path / "summary.csv", "a,b\n")
+    with atomic_path(target, overwrite=True) as live:  # the real naming of a temporary of summary.csv
+        live.write_text("x")
+        stale = live.with_name(live.name.replace(live.name.split(".")[2], "dead"))
+        stale.write_text("old")
+        os.utime(stale, (1.0, 1.0))
+        other = tmp_path / ".failed.dead.tmp.json"
+        other.write_text("old")
+        os.utime(other, (1.0, 1.0))
+        remove_stale_temporaries(target)
+        assert live.exists() and not stale.exists() and other.exists()
+    assert target.read_text() == "x"
