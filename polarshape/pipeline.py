@@ -57,6 +57,7 @@ from polarshape.imaging.pixels import counts_to_float, max_count
 from polarshape.checks import resolve_device, to_numpy
 from polarshape.io.atomic import atomic_directory, atomic_write_text
 from polarshape.io.capture import Capture, load_capture, write_capture
+from polarshape.io.polarimetric import polarimetric_calibration_record
 from polarshape.io.results import RESULT_FORMAT, output_refusal, write_maps, write_params
 from polarshape.metrics import angular_error_deg, angular_error_stats, depth_rmse_aligned
 from polarshape.normals import NormalsResult, recover_normals
@@ -559,6 +560,7 @@ def _params(config: RunConfig, capture: Capture, inputs: RecoveryInputs, result:
             "mask_pixels": int(result.mask.sum()),
             "filled_pixels": None if result.filled is None else int(result.filled.sum()),
             "has_polarisation": bool(inputs.has_polarisation),
+            "polarimetric_calibration": polarimetric_calibration_record(capture),
         },
         "integration": {
             "method": config.integration.method, "pixel_size_m": pixel_size, "solver": surface.report.solver,

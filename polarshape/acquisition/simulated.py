@@ -13,8 +13,11 @@ Usage::
 
 from __future__ import annotations
 
+import json
 import logging
+import math
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -27,18 +30,26 @@ from polarshape.acquisition.camera import CameraError, Frame
 from polarshape.brdf.geometry import sensor_plane_basis, sensor_plane_stokes
 from polarshape.imaging.pixels import PIXEL_FORMATS, bit_depth_of
 from polarshape.checks import resolve_device, to_numpy
-from polarshape.io.atomic import OutputExistsError
+from polarshape.imaging.analyser import PolarimetricCalibration
+from polarshape.imaging.mosaic import our_angle_deg
+from polarshape.imaging.pixels import max_count
+from polarshape.io.atomic import OutputExistsError, atomic_directory
+from polarshape.io.images import write_image
+from polarshape.io.polarimetric import write_polarimetric_calibration
 from polarshape.io.capture import CAPTURE_FORMAT, Capture, parse_capture_spec, write_capture
 from polarshape.lights import light_to_dict
 from polarshape.scene.render import (
     albedo_scale_map,
+    colour_albedo_map,
     mosaic_radiance,
     polariser_angle_map,
     shade_stokes,
 )
 from polarshape.scene.config import SceneConfig, load_scene_config
+from polarshape.scene.materials import colour_albedo_factors
 from polarshape.scene.objects import Scene
 from polarshape.scene.raycast import GeometryBuffers, superpixel_ground_truth
+from polarshape.scene.sensor_defects import SensorMaps
 
 logger = logging.getLogger(__name__)
 
@@ -61,7 +72,9 @@ class SimulatedCamera:
         self.dtype = torch.float64 if self.config.render.dtype == "float64" else torch.float32
         self.seed = self.config.sensor.seed if seed is None else int(seed)
         self.sensor = self.config.sensor.to_model()
+        self.defects = self.config.sensor.to_defects()  # the real sensor's imperfections (ideal by default)
         self.layout = self.config.camera.mosaic.to_layout()
+        self.bayer = self.config.camera.mosaic.bayer  # colour polarisation sensor, or None (mono)
         self.exposure_us = float(self.config.camera.exposure_us)
         self.gain_db = float(self.config.camera.gain_db)
         self.pixel_format = self.config.camera.pixel_format
@@ -71,6 +84,7 @@ class SimulatedCamera:
         self._albedo: Tensor | None = None
         self._angle_map: Tensor | None = None
         self._basis: Tensor | None = None
+        self._maps: SensorMaps | None = None  # per-pixel analysers/gains/hot pixels; None = ideal sensor
         self._radiance: dict[int, Tensor] = {}
         self._generator: torch.Generator | None = None
         self._frame_id = 0
@@ -89,9 +103,13 @@ class SimulatedCamera:
         geometry = scene.rasterize(device=self.device, dtype=self.dtype)
         self._scene, self._geometry = scene, geometry
         self._albedo = albedo_scale_map(scene, geometry)
+        if self.bayer is not None:  # a colour sensor: each pixel's body albedo is its own colour's
+            self._albedo = self._albedo * colour_albedo_map(scene, geometry, self.bayer)
         h, w = geometry.depth.shape
         self._angle_map = polariser_angle_map(self.layout, h, w, device=self.device, dtype=self.dtype)
         self._basis = sensor_plane_basis(geometry.view)
+        if not self.defects.is_ideal:  # drawn once from sensor.defects_seed: the same camera for every frame
+            self._maps = self.defects.draw(self.layout, h, w).to(self.device, self.dtype)
         self._generator = torch.Generator(device=self.device)
         self._generator.manual_seed(self.seed)
         self._frame_id = 0
@@ -130,9 +148,7 @@ class SimulatedCamera:
             raise CameraError("the simulated camera is not open; call open() or use it as a context manager")
         radiance = self.radiance(self.light_index)  # (H, W)
         bit_depth = bit_depth_of(self.pixel_format)
-        image = self.sensor.expose(
-            radiance, exposure_us=self.exposure_us, gain_db=self.gain_db, bit_depth=bit_depth, generator=self._generator
-        )
+        image = self._expose(radiance, bit_depth)
         frame = Frame(
             image=image,
             bit_depth=bit_depth,
@@ -153,6 +169,7 @@ class SimulatedCamera:
         self._albedo = None
         self._angle_map = None
         self._basis = None
+        self._maps = None
         self._radiance.clear()
         self._generator = None
 
@@ -187,19 +204,165 @@ class SimulatedCamera:
             stokes = shade_stokes(
                 scene, geometry, scene.lights[light_index], shadows=self.config.render.shadows, albedo_scale=self._albedo
             )  # (3, H, W), per-pixel Stokes frames
-            self._radiance = {light_index: mosaic_radiance(sensor_plane_stokes(stokes, basis=self._basis), self._angle_map)}
+            self._radiance = {light_index: self._analyse(sensor_plane_stokes(stokes, basis=self._basis))}
         return self._radiance[light_index]
+
+    def _analyse(self, stokes: Tensor) -> Tensor:
+        """(…, H, W) radiance behind this sensor's analysers of (…, 3, H, W) sensor-plane Stokes."""
+        assert self._angle_map is not None
+        if self._maps is None:
+            return mosaic_radiance(stokes, self._angle_map)
+        return mosaic_radiance(stokes, self._maps.angle_rad, self._maps.diattenuation, self._maps.gain)
+
+    def _expose(self, radiance: Tensor, bit_depth: int) -> np.ndarray:
+        """Counts of one exposure of (H, W) analysed radiance with the current settings (hot pixels included)."""
+        return self.sensor.expose(
+            radiance, exposure_us=self.exposure_us, gain_db=self.gain_db, bit_depth=bit_depth, generator=self._generator,
+            dark_counts_12bit=None if self._maps is None else self._maps.hot_level_12bit,
+        )
+
+    def sensor_truth(self, bit_depth: int | None = None) -> PolarimetricCalibration:
+        """The true per-pixel analysers, gains, black level and defects of this camera (camera open),
+        as the :class:`~polarshape.imaging.analyser.PolarimetricCalibration` a perfect bench
+        calibration would find; black level in counts of ``bit_depth`` (default: the pixel format's)."""
+        h, w = self.geometry.depth.shape
+        bits = bit_depth_of(self.pixel_format) if bit_depth is None else int(bit_depth)
+        black = self.sensor.black_level(bits)
+        info = {"source": "polarshape SimulatedCamera (truth)", "defects_seed": self.defects.defects_seed}
+        if self._maps is None:
+            ideal = PolarimetricCalibration.ideal(self.layout, h, w, bit_depth=bits, black_level=black)
+            return PolarimetricCalibration(angle_rad=ideal.angle_rad, diattenuation=ideal.diattenuation,
+                                           gain=ideal.gain, black_level=ideal.black_level, defects=ideal.defects,
+                                           bit_depth=bits, info=info)
+        return self._maps.to_calibration(bit_depth=bits, black_level=black, info=info)
+
+    def _sensor_maps_array(self, bit_depth: int) -> np.ndarray:
+        """(2H, 2W, 5) float32 ground truth ``sensor_maps``: analyser angle (radians, our convention),
+        diattenuation, gain, black level (counts of ``bit_depth``), defect (1 hot or dead, else 0)."""
+        t = self.sensor_truth(bit_depth)
+        stack = torch.stack([t.angle_rad, t.diattenuation, t.gain, t.black_level, t.defects.double()], dim=-1)
+        return to_numpy(stack, np.float32)
+
+    def render_calibration_frames(
+        self,
+        out_dir: str | Path,
+        *,
+        angles_deg: Sequence[float] = tuple(float(a) for a in range(0, 180, 10)),
+        n_flat: int = 16,
+        n_dark: int = 16,
+        mount_offset_deg: float = 3.7,
+        flat_fraction: float = 0.5,
+        polariser_fraction: float = 0.8,
+        overwrite: bool = False,
+    ) -> Path:
+        """Bench calibration frames of this camera (same sensor maps, noise and settings):
+        ``flat/NNN.png`` (uniform unpolarised radiance), ``polariser/NNN.png`` (a uniform, fully
+        linearly polarised source at each angle of ``polariser/angles.txt``), ``dark/NNN.png`` (no
+        light) and ``truth.json`` + ``truth_polcal.npz`` (the mount offset and the sensor's true maps).
+
+        The angles written are the polariser's dial readings in the maker's
+        ``counterclockwise_on_screen`` convention; the true axis is the reading + ``mount_offset_deg``
+        (an unknown mount zero, as on a real bench). The flat sits at ``flat_fraction`` of the range
+        above black, the polariser's peak at about ``polariser_fraction``.
+
+        Args:
+            out_dir: folder to create (refused if it exists unless ``overwrite``).
+            angles_deg: (M,) polariser dial readings, degrees (M ≥ 3 distinct angles mod 180).
+            n_flat, n_dark: number of flat and dark frames (≥ 1).
+
+        Returns:
+            ``out_dir``.
+        """
+        out = Path(out_dir)
+        angles = [float(a) for a in angles_deg]
+        if len({round(a % 180.0, 9) for a in angles}) < 3 or not all(math.isfinite(a) for a in angles):
+            raise ValueError(f"angles_deg needs at least 3 distinct finite polariser angles (mod 180°); got {angles}")
+        if n_flat < 1 or n_dark < 1:
+            raise ValueError(f"n_flat and n_dark must be >= 1; got {n_flat} and {n_dark}")
+        if not (0 < flat_fraction < 1 and 0 < polariser_fraction < 1):
+            raise ValueError("flat_fraction and polariser_fraction must lie in (0, 1)")
+        if not math.isfinite(mount_offset_deg):
+            raise ValueError(f"mount_offset_deg must be finite; got {mount_offset_deg}")
+        opened_here = self._scene is None
+        if opened_here:
+            self.open()
+        try:
+            bits = bit_depth_of(self.pixel_format)
+            h, w = self.geometry.depth.shape
+            black = self.sensor.black_level(bits)
+            counts_per_radiance = (self.sensor.mean_electrons(torch.ones((), dtype=torch.float64), self.exposure_us).item()
+                                   / self.sensor.e_per_count(bits, self.gain_db))
+            span = max_count(bits) - black
+            # an unpolarised radiance L gives ½ g L behind every analyser
+            flat_l = 2.0 * flat_fraction * span / counts_per_radiance
+            pol_l = polariser_fraction * span / counts_per_radiance
+            zero = torch.zeros((h, w), dtype=self.dtype, device=self.device)
+            flat_stokes = torch.stack([zero + flat_l, zero, zero])  # (3, H, W)
+            frames: dict[str, list[np.ndarray]] = {"flat": [], "polariser": [], "dark": []}
+            flat_radiance = self._analyse(flat_stokes)
+            for _ in range(n_flat):
+                frames["flat"].append(self._expose(flat_radiance, bits))
+            true_deg = [a + mount_offset_deg for a in angles]
+            for a in true_deg:
+                phi = math.radians(our_angle_deg(a, "counterclockwise_on_screen"))
+                stokes = torch.stack([zero + pol_l, zero + pol_l * math.cos(2 * phi), zero + pol_l * math.sin(2 * phi)])
+                frames["polariser"].append(self._expose(self._analyse(stokes), bits))
+            dark_radiance = zero
+            for _ in range(n_dark):
+                frames["dark"].append(self._expose(dark_radiance, bits))
+            truth = self.sensor_truth(bits)
+        finally:
+            if opened_here:
+                self.close()
+        with atomic_directory(out, overwrite=overwrite) as tmp:
+            for name, images in frames.items():
+                (tmp / name).mkdir()
+                for k, image in enumerate(images):
+                    write_image(tmp / name / f"{k:03d}.png", image)
+            (tmp / "polariser" / "angles.txt").write_text("".join(f"{a:.6g}\n" for a in angles), encoding="utf-8")
+            meta = {
+                "simulator": "polarshape SimulatedCamera calibration frames",
+                "angle_convention": "counterclockwise_on_screen",
+                "mount_offset_deg": mount_offset_deg,
+                "true_polariser_angles_deg": true_deg,
+                "bit_depth": bits, "black_level": black, "pixel_format": self.pixel_format,
+                "exposure_us": self.exposure_us, "gain_db": self.gain_db,
+                "flat_radiance": flat_l, "polariser_radiance": pol_l, "seed": self.seed,
+                "sensor": self.config.model_dump(mode="json")["sensor"],
+            }
+            (tmp / "truth.json").write_text(json.dumps(meta, indent=2) + "\n", encoding="utf-8")
+            write_polarimetric_calibration(tmp / "truth_polcal.npz", truth)
+        logger.info("wrote calibration frames to %s: %d flat, %d polariser, %d dark", out, n_flat, len(angles), n_dark)
+        return out
 
     def ground_truth(self) -> dict[str, np.ndarray]:
         """Ground truth at super-pixel resolution: ``normals`` (H/2, W/2, 3) float32 (NaN off the
         object), ``depth`` (H/2, W/2) float32 (z, metres, NaN off the object), ``mask``
         (H/2, W/2) bool (super-pixels whose four sites all see the object)."""
         normals, depth, mask = superpixel_ground_truth(self.geometry, self.scene.object_mask(self.geometry))
-        return {
+        truth = {
             "normals": to_numpy(normals, np.float32),
             "depth": to_numpy(depth, np.float32),
             "mask": to_numpy(mask),
         }
+        if self.bayer is not None:
+            truth["albedo_rgb"] = to_numpy(self._albedo_rgb(mask), np.float32)
+        return truth
+
+    def _albedo_rgb(self, mask: Tensor) -> Tensor:
+        """(H/2, W/2, 3) body albedo (k_b, or k_d for Lambertian/Baek) per colour channel R, G, B at
+        super-pixel resolution (texture included, mean of the four sites; scene units), NaN off ``mask``."""
+        scene, geometry = self.scene, self.geometry
+        texture = albedo_scale_map(scene, geometry)  # (2H, 2W)
+        rgb = torch.zeros(*texture.shape, 3, dtype=texture.dtype, device=texture.device)  # (2H, 2W, 3)
+        for k, obj in enumerate(scene.objects):
+            sel = geometry.object_index == k  # (2H, 2W)
+            base = float(getattr(obj.material, "k_b", getattr(obj.material, "k_d", math.nan)))
+            factors = texture.new_tensor(colour_albedo_factors(obj.material)) * base  # (3,)
+            rgb = torch.where(sel[..., None], texture[..., None] * factors, rgb)
+        h2, w2 = texture.shape
+        sp = rgb.reshape(h2 // 2, 2, w2 // 2, 2, 3).mean(dim=(1, 3))  # (H/2, W/2, 3)
+        return torch.where(mask[..., None], sp, torch.full_like(sp, math.nan))
 
     def render_capture(self, out_dir: str | Path | None = None, *, overwrite: bool = False, progress: bool = True) -> Capture:
         """Capture one frame per light with the current settings, plus ground truth.
@@ -264,5 +427,7 @@ class SimulatedCamera:
             spec=spec,
             frames=np.stack([f.image.astype(np.uint16) for f in frames]),
             mask=truth["mask"],
-            ground_truth={"normals": truth["normals"], "depth": truth["depth"], "scene": provenance},
+            ground_truth={"normals": truth["normals"], "depth": truth["depth"], "scene": provenance,
+                          **({"albedo_rgb": truth["albedo_rgb"]} if "albedo_rgb" in truth else {}),
+                          **({"sensor_maps": self._sensor_maps_array(bit_depth)} if self._maps is not None else {})},
         )

@@ -3,7 +3,9 @@
 Sub-commands (one ``_cmd_<name>(args) -> int`` each, registered in :func:`build_parser`):
 
 * ``simulate SCENE.yaml --out CAPTURE_DIR [--overwrite]`` — render a capture folder
-  (capture-format.md) with the simulated camera, ground truth included.
+  (capture-format.md) with the simulated camera, ground truth included;
+  ``simulate calibration SCENE.yaml --out DIR`` — that camera's bench calibration frames
+  (``flat/``, ``polariser/`` with ``angles.txt``, ``dark/``, ``truth.json``, ``truth_polcal.npz``).
 * ``demo --out DIR [--overwrite]`` — the forward-model demo (a sphere under one light).
 * ``inspect FRAME`` — DoLP and AoLP of one raw mosaic.
 * ``run``, ``capture``, ``calibrate``, ``import``, ``material``, ``batch`` — see :mod:`polarshape.cli.run`,
@@ -64,11 +66,21 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     # Refused before the scene is even loaded, with the command-line fix in the message.
     if out.exists() and not args.overwrite:
         raise OutputExistsError(f"{out} already exists; refusing to overwrite it (pass --overwrite or another --out)")
-    config = load_scene_config(args.scene)
+    calibration = args.scene == "calibration" and args.calibration_scene is not None
+    if args.calibration_scene is not None and not calibration:
+        raise CameraError(f"unexpected argument {args.calibration_scene!r}; use `simulate SCENE` or `simulate calibration SCENE`")
+    config = load_scene_config(args.calibration_scene if calibration else args.scene)
     if args.pixel_format is not None and args.pixel_format not in PIXEL_FORMATS:
         raise CameraError(f"--pixel-format {args.pixel_format!r} is not one of {sorted(PIXEL_FORMATS)}")
     with SimulatedCamera(config, device=device, seed=args.seed) as camera:
         camera.configure(exposure_us=args.exposure_us, gain_db=args.gain_db, pixel_format=args.pixel_format)
+        if calibration:  # bench frames of this camera (issue 16): flat/, polariser/ (+ angles.txt), dark/
+            camera.render_calibration_frames(
+                out, angles_deg=args.angles if args.angles else tuple(float(a) for a in range(0, 180, 10)),
+                n_flat=args.n_flat, n_dark=args.n_dark, mount_offset_deg=args.mount_offset_deg, overwrite=args.overwrite,
+            )
+            print(f"wrote {out} (calibration frames: flat/, polariser/, dark/)")
+            return 0
         capture = camera.render_capture(out, overwrite=args.overwrite, progress=not args.quiet)
     mask = capture.mask
     logger.info(
@@ -191,7 +203,16 @@ def build_parser() -> argparse.ArgumentParser:
         description="Render one raw polarisation mosaic per light of SCENE (see configs/scenes/*.yaml) into a "
         "capture folder, with ground_truth/normals.npy, depth.npy and mask.png.",
     )
-    sim.add_argument("scene", help="scene YAML file")
+    sim.add_argument("scene", help="scene YAML file (or the word `calibration` followed by the scene file: bench "
+                     "calibration frames flat/, polariser/ with angles.txt, dark/ of that scene's camera)")
+    sim.add_argument("calibration_scene", nargs="?", default=None, metavar="CALIBRATION_SCENE", help=argparse.SUPPRESS)
+    sim.add_argument("--angles", type=float, nargs="+", default=None,
+                     help="calibration: polariser dial readings, degrees, maker's convention (default 0 10 ... 170)")
+    sim.add_argument("--n-flat", type=int, default=16, help="calibration: number of flat frames (default 16)")
+    sim.add_argument("--n-dark", type=int, default=16, help="calibration: number of dark frames (default 16)")
+    sim.add_argument("--mount-offset-deg", type=float, default=3.7,
+                     help="calibration: the polariser mount's unknown zero, degrees (true axis = reading + this; "
+                     "recorded in truth.json; default 3.7)")
     sim.add_argument("--out", required=True, help="capture folder to create (must not exist unless --overwrite)")
     sim.add_argument("--overwrite", action="store_true", help="replace an existing --out folder")
     sim.add_argument("--seed", type=int, default=None, help="noise seed (default: sensor.seed of the scene)")

@@ -63,6 +63,66 @@ def _cmd_calibrate_intrinsics(args: argparse.Namespace) -> int:
     return 0
 
 
+def _read_angles_file(path: str) -> list[float]:
+    """Numbers (degrees) of an angles file: whitespace- or comma-separated, ``#`` starts a comment."""
+    from pathlib import Path
+
+    p = Path(path)
+    if not p.is_file():
+        raise ValueError(f"--angles-file {path}: file not found")
+    values: list[float] = []
+    for n, line in enumerate(p.read_text(encoding="utf-8").splitlines(), 1):
+        for token in line.split("#", 1)[0].replace(",", " ").split():
+            try:
+                values.append(float(token))
+            except ValueError:
+                raise ValueError(f"--angles-file {path}, line {n}: {token!r} is not a number (one angle in degrees "
+                                 "per polariser frame, whitespace- or comma-separated)") from None
+    return values
+
+
+@reports_errors()
+def _cmd_calibrate_polarisation(args: argparse.Namespace) -> int:
+    import logging
+
+    from polarshape.acquisition.polarimetric import (
+        estimate_polarimetric_calibration_from_files, summarise_polarimetric_calibration,
+    )
+    from polarshape.errors import OutputExistsError
+    from polarshape.imaging.mosaic import MosaicLayout
+    from polarshape.io.polarimetric import write_polarimetric_calibration
+
+    from pathlib import Path
+
+    if (args.angles is None) == (args.angles_file is None):
+        raise ValueError("give the polariser angles with exactly one of --angles A… or --angles-file FILE (degrees, "
+                         "one per --polariser frame, in order)")
+    out = Path(args.out)
+    if out.suffix.lower() != ".npz":
+        raise ValueError(f"--out {out}: a polarimetric calibration is a .npz file; name it e.g. polcal.npz")
+    if out.exists() and not args.overwrite:  # refused before the frames are read
+        raise OutputExistsError(f"{out} already exists; refusing to overwrite it (pass --overwrite or another --out)")
+    angles = args.angles if args.angles is not None else _read_angles_file(args.angles_file)
+    labels = args.layout or [90, 45, 135, 0]
+    if sorted(label % 180 for label in labels) != [0, 45, 90, 135]:
+        raise ValueError(
+            f"--layout {' '.join(str(v) for v in labels)}: must hold each of 0, 45, 90, 135 once (top-left, top-right, "
+            "bottom-left, bottom-right; the IMX250MZR is 90 45 135 0)"
+        )
+    layout = MosaicLayout.from_maker([labels[:2], labels[2:]], args.layout_angles)
+    calibration = estimate_polarimetric_calibration_from_files(
+        polariser=args.polariser, angles_deg=angles, angle_convention=args.angle_convention, layout=layout,
+        bit_depth=args.bit_depth, flat=args.flat or (), dark=args.dark or (), black_level=args.black_level,
+        absolute_angles=args.absolute_angles,
+    )
+    path = write_polarimetric_calibration(out, calibration, overwrite=args.overwrite)
+    logging.getLogger(__name__).info("wrote %s", path)
+    print(summarise_polarimetric_calibration(calibration))
+    print(f"wrote {path}; reference it from capture.yaml as camera.polarimetric_calibration: {path.name} "
+          "(relative to the capture folder, or an absolute path)")
+    return 0
+
+
 def add_parsers(sub: argparse._SubParsersAction) -> None:
     """Register ``capture`` and ``calibrate`` on the top-level sub-parser."""
     cap = sub.add_parser(
@@ -80,7 +140,8 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     cap.set_defaults(handler=_cmd_capture, interrupted="error: interrupted (Ctrl-C); the frames captured so far are "
                      "kept: run the same command again to capture the rest")
 
-    cal = sub.add_parser("calibrate", help="calibrate light directions (mirror sphere) or camera intrinsics (ChArUco)")
+    cal = sub.add_parser("calibrate", help="calibrate light directions (mirror sphere), camera intrinsics (ChArUco) "
+                         "or the sensor's analysers (polariser series)")
     cal_sub = cal.add_subparsers(dest="what", required=True, metavar="WHAT")
     lights = cal_sub.add_parser(
         "lights",
@@ -110,3 +171,40 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     intr.add_argument("--no-mosaic", action="store_true", help="images are plain intensity, not raw polarisation mosaics")
     intr.add_argument("--capture", help="write the intrinsics into this capture folder / capture.yaml")
     intr.set_defaults(handler=_cmd_calibrate_intrinsics)
+
+    pol = cal_sub.add_parser(
+        "polarisation",
+        help="per-pixel analyser angle, extinction ratio, gain, black level and defects from bench frames",
+        description="From frames of a linear polariser in front of a uniform source at several known angles "
+        "(--polariser, --angles), optionally of the uniform source without polariser (--flat) and with the lens "
+        "capped (--dark), estimate every pixel's analyser angle, diattenuation (extinction ratio), gain, black "
+        "level and the hot/dead pixels; write a calibration file that capture.yaml references as "
+        "camera.polarimetric_calibration.",
+    )
+    pol.add_argument("--polariser", nargs="+", required=True, metavar="FRAME",
+                     help="raw mosaics (PNG/TIFF) of the polariser in front of the uniform source, one per angle (≥ 3)")
+    pol.add_argument("--angles", type=float, nargs="+", metavar="A", help="the polariser angle of each --polariser "
+                     "frame, degrees, in order (its mount's scale: the zero may be anywhere)")
+    pol.add_argument("--angles-file", metavar="F", help="file of the angles instead of --angles (one per line or "
+                     "whitespace/comma separated; e.g. polariser/angles.txt of `polarshape simulate calibration`)")
+    # polarshape.imaging.mosaic.MAKER_ANGLES, written out so that parsing does not import torch
+    conventions = ["counterclockwise_on_screen", "clockwise_on_screen", "polanalyser"]
+    pol.add_argument("--angle-convention", default="counterclockwise_on_screen", choices=conventions,
+                     help="the direction in which the polariser angles increase: counter-clockwise as seen on screen "
+                     "(the makers', default), clockwise on screen (ours, image y down), or polanalyser's (the makers')")
+    pol.add_argument("--absolute-angles", action="store_true", help="the angles are measured from the sensor's x axis: "
+                     "keep the global offset instead of removing the mount's zero")
+    pol.add_argument("--flat", nargs="+", metavar="FRAME", help="raw mosaics of the uniform unpolarised source (no "
+                     "polariser): per-pixel gain and dead pixels")
+    pol.add_argument("--dark", nargs="+", metavar="FRAME", help="raw mosaics with the lens capped: per-pixel black "
+                     "level and hot pixels")
+    pol.add_argument("--bit-depth", type=int, required=True, help="significant bits of the counts (8, 10, 12, 16)")
+    pol.add_argument("--black-level", type=float, default=0.0, help="black level, counts, when there are no --dark "
+                     "frames (default 0)")
+    pol.add_argument("--layout", type=int, nargs=4, metavar=("TL", "TR", "BL", "BR"),
+                     help="maker's polariser labels of the 2x2 block (default 90 45 135 0, the IMX250MZR)")
+    pol.add_argument("--layout-angles", default="counterclockwise_on_screen", choices=conventions,
+                     help="how the --layout labels are measured (camera.mosaic.angles; default the makers')")
+    pol.add_argument("--out", required=True, help="calibration file to write (.npz, e.g. polcal.npz)")
+    pol.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
+    pol.set_defaults(handler=_cmd_calibrate_polarisation)

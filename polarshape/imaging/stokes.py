@@ -15,7 +15,7 @@ from torch import Tensor
 from polarshape.checks import check_dtype_floating, check_shape, format_shape
 from polarshape.errors import ShapeError
 
-__all__ = ["aolp", "dolp", "intensities_from_stokes", "polariser_matrix", "stokes_from_intensities"]
+__all__ = ["analyser_rows", "aolp", "dolp", "intensities_from_stokes", "polariser_matrix", "stokes_from_intensities"]
 
 
 def _check_stokes(stokes: object, name: str = "stokes") -> Tensor:
@@ -24,21 +24,46 @@ def _check_stokes(stokes: object, name: str = "stokes") -> Tensor:
     return stokes
 
 
+def analyser_rows(angle_rad: Tensor, diattenuation: Tensor | float = 1.0, gain: Tensor | float = 1.0) -> Tensor:
+    """Rows ``½ g [1, D cos 2θ, D sin 2θ]`` of real linear analysers (spec §1, generalised).
+
+    A polariser whose transmission axis is at ``θ`` and which transmits ``t_max`` of light polarised
+    along it and ``t_min`` across it sends ``I = ½ ((t_max + t_min) s0 + (t_max − t_min)(s1 cos 2θ +
+    s2 sin 2θ))`` to its pixel; with the gain ``g = t_max + t_min`` (times the pixel's response) and
+    the diattenuation ``D = (t_max − t_min) / (t_max + t_min) = (ER − 1) / (ER + 1)`` (ER = extinction
+    ratio) that is ``I = row · s``. The ideal polariser of spec §1 is ``D = 1, g = 1``.
+
+    Args:
+        angle_rad: (*) transmission-axis angles, radians, our convention (from x toward y-down).
+        diattenuation: (*) or scalar D in (0, 1].
+        gain: (*) or scalar g > 0.
+
+    Returns:
+        (*, 3) rows with ``I = row @ s`` (dtype and device of ``angle_rad``).
+    """
+    angle_rad = check_dtype_floating(angle_rad, "angle_rad")
+    two = 2.0 * angle_rad
+    d = torch.as_tensor(diattenuation, dtype=angle_rad.dtype, device=angle_rad.device)
+    g = torch.as_tensor(gain, dtype=angle_rad.dtype, device=angle_rad.device)
+    rows = torch.stack([torch.ones_like(two), d * torch.cos(two), d * torch.sin(two)], dim=-1)
+    return (0.5 * g).unsqueeze(-1) * rows
+
+
 def polariser_matrix(angles_rad: Tensor) -> Tensor:
-    """Rows ``½ [1, cos 2θ, sin 2θ]`` mapping a linear Stokes vector to polariser intensities.
+    """Rows ``½ [1, cos 2θ, sin 2θ]`` mapping a linear Stokes vector to ideal polariser intensities.
 
     Args:
         angles_rad: (K,) polariser angles in radians (our convention, from x toward y-down).
 
     Returns:
-        (K, 3) matrix ``A`` with ``I = A @ s`` (same dtype and device as ``angles_rad``).
+        (K, 3) matrix ``A`` with ``I = A @ s`` (same dtype and device as ``angles_rad``);
+        :func:`analyser_rows` with D = 1, g = 1.
     """
     angles_rad = check_dtype_floating(angles_rad, "angles_rad")
     check_shape(angles_rad, ["K"], "angles_rad")
     if angles_rad.numel() == 0:
         raise ShapeError("angles_rad must have shape (K,) with K >= 1; got (0,)")
-    two = 2.0 * angles_rad
-    return 0.5 * torch.stack([torch.ones_like(two), torch.cos(two), torch.sin(two)], dim=-1)
+    return analyser_rows(angles_rad)
 
 
 def stokes_from_intensities(intensities: Tensor, angles_rad: Tensor) -> Tensor:

@@ -29,6 +29,7 @@ import yaml
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from polarshape.errors import BitDepthWarning, CaptureError
+from polarshape.imaging.colour import BAYER_PATTERNS
 from polarshape.imaging.mosaic import CHANNEL_ANGLES_DEG, MakerAngles, MosaicLayout
 from polarshape.imaging.pixels import BIT_DEPTHS, left_shift_of, max_count, reduce_mask_to_superpixels
 from polarshape.io.atomic import atomic_directory, atomic_write_text
@@ -106,6 +107,19 @@ class MosaicSpec(_Strict):
 
     layout: tuple[tuple[float, float], tuple[float, float]] = ((90.0, 45.0), (135.0, 0.0))
     angles: MakerAngles = "counterclockwise_on_screen"
+    #: Colour polarisation sensors (IMX250MYR): colours of the top-left 2×2 polariser blocks of the
+    #: stored frames, row by row (:mod:`polarshape.imaging.colour`); None = a mono sensor.
+    bayer: str | None = None
+
+    @field_validator("bayer")
+    @classmethod
+    def _bayer(cls, v: str | None) -> str | None:
+        if v is not None and v not in BAYER_PATTERNS:
+            raise ValueError(
+                f"must be one of {list(BAYER_PATTERNS)} (colours of the top-left 2×2 polariser blocks, row by row; "
+                f"the IMX250MYR / TRI050S-QC is RGGB) or null for a mono sensor; got {v!r}"
+            )
+        return v
 
     @field_validator("layout")
     @classmethod
@@ -133,6 +147,9 @@ class CameraSpec(_Strict):
     bit_depth: int
     black_level: float = Field(default=0.0, ge=0, allow_inf_nan=False)
     mosaic: MosaicSpec = MosaicSpec()
+    #: The sensor's polarimetric calibration file (``polarshape calibrate polarisation``; a path relative
+    #: to the capture folder, or absolute), read and applied by preprocessing; None = ideal analysers.
+    polarimetric_calibration: str | None = Field(default=None, min_length=1)
 
     @field_validator("bit_depth")
     @classmethod
@@ -335,6 +352,11 @@ def _check_frames(spec: CaptureSpec, frames: np.ndarray, where: str) -> None:
         raise CaptureError(
             f"{where}: frames are {w}×{h} (W×H); a polarisation mosaic needs even width and height (whole 2×2 "
             "super-pixels): crop one column/row, and if you crop at the top or left, change camera.mosaic.layout"
+        )
+    if spec.camera.mosaic.bayer is not None and (h < 4 or w < 4):
+        raise CaptureError(
+            f"{where}: frames are {w}×{h} (W×H); a colour polarisation mosaic (camera.mosaic.bayer "
+            f"{spec.camera.mosaic.bayer}) needs at least 4×4 pixels (one Bayer super-block of 2×2 polariser blocks)"
         )
     if frames.dtype not in (np.uint8, np.uint16):
         raise CaptureError(f"{where}: frames must be uint16 (or uint8) sensor counts; got {frames.dtype}")

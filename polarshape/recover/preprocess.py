@@ -12,6 +12,12 @@ is taken (``sample_at``) and how (``demosaic``):
   estimate instead combines four sites half a pixel apart: under an intensity gradient this adds a
   spurious s1, s2 (measured on the default sphere: 0.33° → 0.19° mean normal error with bilinear).
 - ``demosaic="superpixel"``: the plain 2×2 estimate (``sample_at`` must be ``"centre"``).
+- ``camera.polarimetric_calibration`` (capture.yaml): the per-pixel black level replaces the scalar
+  ``camera.black_level`` (full scale stays max count − ``camera.black_level``), and every Stokes
+  vector comes from the calibrated analysers (:func:`polarshape.imaging.analyser.calibrated_stokes`:
+  per block, or with ``bilinear`` per pixel from every angle class and its rows interpolated there);
+  defective pixels drop out (three sites determine a block; a block with ≥ 2 defects is invalid)
+  and are not taken for clipped.
 
 - ``stokes`` (K, 3, H, W): linear Stokes (s0, s1, s2) in fractions of full scale (spec §1:
   s0 = ½ ΣI, s1 = I0 − I90, s2 = I45 − I135), **in each pixel's Stokes frame** (spec §1). A
@@ -37,6 +43,7 @@ from __future__ import annotations
 
 import logging
 import math
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -45,10 +52,13 @@ from torch import Tensor
 
 from polarshape.brdf.geometry import sensor_plane_basis, sensor_plane_stokes
 from polarshape.cameras import SAMPLE_SITES, Camera, camera_from_spec
+from polarshape.imaging.analyser import PolarimetricCalibration, calibrated_pinv, calibrated_stokes, ideal_equivalent_sites
 from polarshape.imaging.demosaic import stokes_from_mosaic
 from polarshape.imaging.mosaic import MosaicLayout, split_mosaic
 from polarshape.imaging.pixels import counts_to_float, max_count, reduce_mask_to_superpixels, saturation_count
+from polarshape.errors import CaptureError
 from polarshape.io.capture import Capture
+from polarshape.io.polarimetric import capture_polarimetric_calibration
 from polarshape.recover.diagnose import check_observations, check_polarisation_signal
 from polarshape.recover.noise import demosaic_variance_factor, estimate_noise, site_redundancy
 from polarshape.recover.observations import RecoveryInputs
@@ -152,6 +162,7 @@ def preprocess_capture(
     # the sensor-plane angles are the per-pixel frames' when orthographic
     to_frames = _pixel_frame_basis(view) if camera.projection == "perspective" else None  # (H, W, 2, 2)
     lights, irradiance = _pixel_lights(capture, points, (h, w), dtype=dtype, device=device)
+    polcal = _polcal_application(capture, demosaic=demosaic, sample_at=sample_at)
 
     # One light at a time: the float64 mosaic and full-resolution Stokes of one frame only (all K of
     # them at once are ~1.4 GB at 2448 × 2048); per light only (H, W) results are kept.
@@ -163,19 +174,21 @@ def preprocess_capture(
     block_s0 = torch.empty((k, h, w), dtype=torch.float64)  # the block's own s0 (noise model)
     for i in range(k):
         mosaic = counts_to_float(frames[i], bit_depth, black, dtype=torch.float64)  # (2H, 2W)
-        s = superpixel_stokes(mosaic, capture.layout, demosaic=demosaic, sample_at=sample_at)  # (3, H, W)
+        s, sites = _stokes_and_sites(mosaic, capture.layout, polcal, demosaic=demosaic, sample_at=sample_at)
         stokes[i] = s if to_frames is None else sensor_plane_stokes(s, basis=to_frames)
-        sites = split_mosaic(mosaic, capture.layout)  # (4, H, W) at 0°, 45°, 90°, 135°
         block_s0[i] = sites.sum(-3) * 0.5  # the block's own s0 = ½ Σ of its four sites
         dark[i] = block_s0[i] < dark_threshold
         redundancy[i] = site_redundancy(sites)
         scaled[i] = _scaled_redundancy(sites)
-        saturated[i] = _saturated(frames[i], bit_depth, saturation_margin, demosaic)
+        saturated[i] = _saturated(frames[i], bit_depth, saturation_margin, demosaic,
+                                  ignore=None if polcal is None else polcal.calibration.defects)
         del mosaic, s, sites
     mask = _mask(capture, ~dark & ~saturated, (h, w))
     mixed = _mixed_from_scaled(scaled, ~dark & ~saturated & mask.unsqueeze(0), n_sigma=mixed_sigma)
     del scaled
     valid = ~dark & ~saturated & ~mixed & mask.unsqueeze(0)
+    if polcal is not None:  # blocks with too few good sites (≥ 2 defects) carry no Stokes vector
+        valid &= polcal.valid.unsqueeze(0)
     # σ of s0 from quantisation (1 count / √12 per site, ½Σ of 4 sites) plus a read-noise floor.
     step = 1.0 / (max_count(bit_depth) - black)
     noise_std = float(step / np.sqrt(12.0))
@@ -204,10 +217,84 @@ def preprocess_capture(
     return out
 
 
-def _saturated(frames: np.ndarray, bit_depth: int, margin: int, demosaic: str) -> Tensor:
-    """(*, H, W) bool observations of frames (*, 2H, 2W) with a site at the top count (less ``margin``)."""
+@dataclass(frozen=True)
+class _PolcalApplication:
+    """A capture's polarimetric calibration, ready for every frame: the per-pixel black-level
+    correction, and the pseudo-inverses of the block (and, for ``demosaic: bilinear``, per-pixel)
+    analysis matrices (:func:`polarshape.imaging.analyser.calibrated_pinv`)."""
+
+    calibration: PolarimetricCalibration
+    black_shift: Tensor  # (2H, 2W) (black − nominal black) / (max count − nominal black)
+    block: tuple[Tensor, Tensor]  # superpixel P (H, W, 3, 4), valid (H, W)
+    full: tuple[Tensor, Tensor] | None  # bilinear P (2H, 2W, 3, 4), valid (2H, 2W)
+    valid: Tensor  # (H, W) blocks with a Stokes vector
+
+
+def _polcal_application(capture: Capture, *, demosaic: str, sample_at: str) -> _PolcalApplication | None:
+    """Read ``camera.polarimetric_calibration`` (None without one) and prepare it for the frames."""
+    calibration = capture_polarimetric_calibration(capture)
+    if calibration is None:
+        return None
+    if capture.spec.camera.mosaic.bayer is not None:
+        raise CaptureError(
+            "camera.polarimetric_calibration in capture.yaml: a calibration of a colour polarisation sensor "
+            "(camera.mosaic.bayer) is not supported yet; remove the field"
+        )
+    if demosaic not in DEMOSAIC_CHOICES:
+        raise ValueError(f"demosaic must be one of {DEMOSAIC_CHOICES}; got {demosaic!r}")
+    try:
+        block = calibrated_pinv(calibration, capture.layout, method="superpixel")
+        # a calibrated bilinear estimate: every angle class and its rows interpolated to every pixel
+        full = calibrated_pinv(calibration, capture.layout, method="bilinear") if demosaic == "bilinear" else None
+    except ValueError as err:
+        raise CaptureError(f"camera.polarimetric_calibration in capture.yaml: {err}") from None
+    valid = block[1]
+    if full is not None:
+        site = SAMPLE_SITES[sample_at]
+        ok = full[1]
+        ok = ok.reshape(ok.shape[0] // 2, 2, ok.shape[1] // 2, 2).all(3).all(1) if site is None else ok[site[0]::2, site[1]::2]
+        valid = valid & ok
+    nominal = capture.spec.camera.black_level
+    shift = (calibration.black_level - nominal) / (max_count(capture.bit_depth) - nominal)
+    logger.info(
+        "preprocess: polarimetric calibration %s (%d defective pixels, %d blocks without a Stokes vector; %s estimate)",
+        capture.spec.camera.polarimetric_calibration, int(calibration.defects.sum()), int((~valid).sum()),
+        "per-pixel bilinear" if full is not None else "block",
+    )
+    return _PolcalApplication(calibration=calibration, black_shift=shift, block=block, full=full, valid=valid)
+
+
+def _stokes_and_sites(mosaic: Tensor, layout: MosaicLayout, polcal: _PolcalApplication | None, *, demosaic: str,
+                      sample_at: str) -> tuple[Tensor, Tensor]:
+    """Stokes (3, H, W) of a mosaic (2H, 2W) at ``sample_at`` and its sites (4, H, W) at 0°, 45°, 90°, 135°.
+
+    With a calibration the mosaic (black-corrected with the nominal black level) first takes the
+    per-pixel black level, then each block's (or pixel's) own analysis matrix gives ``s``; the sites
+    are those ideal analysers would have seen (:func:`polarshape.imaging.analyser.ideal_equivalent_sites`),
+    so that the four-site checks (dark, mixed, noise model) see noise and not the sensor's PRNU.
+    """
+    if polcal is None:
+        return superpixel_stokes(mosaic, layout, demosaic=demosaic, sample_at=sample_at), split_mosaic(mosaic, layout)
+    mosaic = mosaic - polcal.black_shift.to(mosaic)
+    cal = polcal.calibration
+    sites = ideal_equivalent_sites(mosaic, cal, layout, pinv=polcal.block)
+    if polcal.full is None:
+        return calibrated_stokes(mosaic, cal, layout, pinv=polcal.block)[0], sites
+    full = calibrated_stokes(mosaic, cal, layout, method="bilinear", pinv=polcal.full)[0]  # (3, 2H, 2W)
+    site = SAMPLE_SITES[sample_at]
+    if site is None:
+        return F.avg_pool2d(full.unsqueeze(1), 2).squeeze(1), sites
+    return full[..., site[0]::2, site[1]::2], sites
+
+
+def _saturated(frames: np.ndarray, bit_depth: int, margin: int, demosaic: str, *, ignore: Tensor | None = None) -> Tensor:
+    """(*, H, W) bool observations of frames (*, 2H, 2W) with a site at the top count (less ``margin``);
+    ``ignore`` (2H, 2W): pixels that do not count (a calibration's defects: a hot pixel stuck at the top)."""
     top = saturation_count(bit_depth) - int(margin)
-    saturated = reduce_mask_to_superpixels(torch.from_numpy(frames.astype(np.int64) >= top), "any")  # (*, H, W)
+    clipped = torch.from_numpy(frames.astype(np.int64) >= top)  # (*, 2H, 2W)
+    if ignore is not None:
+        clipped &= ~ignore
+    saturated = reduce_mask_to_superpixels(clipped, "any")  # (*, H, W)
     if demosaic == "bilinear":  # interpolation reaches one block further: so does a clipped site
         lead, hw = saturated.shape[:-2], saturated.shape[-2:]
         grown = F.max_pool2d(saturated.to(torch.float32).reshape(-1, 1, *hw), 3, stride=1, padding=1)

@@ -22,6 +22,7 @@ from pydantic import (
 )
 from pydantic.dataclasses import dataclass as pydantic_dataclass
 
+from polarshape.brdf.fmbrdf import check_param
 from polarshape.brdf.params import FMBRDFParams
 from polarshape.cameras import Camera, OrthographicCamera, PerspectiveCamera
 from polarshape.errors import ConfigError
@@ -34,6 +35,7 @@ from polarshape.scene.geometry import BlobShape, MeshShape, PlaneShape, Shape, S
 from polarshape.scene.materials import BaekMaterial, FMBRDFMaterial, LambertianMaterial, Material, material_from_file
 from polarshape.scene.objects import Scene, SceneObject
 from polarshape.scene.sensor import SensorModel
+from polarshape.scene.sensor_defects import SensorDefects
 from polarshape.scene.textures import AlbedoTexture, make_texture
 
 SCENE_FORMAT = "polarshape-scene/1"
@@ -102,14 +104,22 @@ class CameraConfig(_Strict):
 
 
 @pydantic_dataclass(frozen=True, config=ConfigDict(extra="forbid", allow_inf_nan=False))
-class SensorConfig(SensorModel):
-    """``sensor:``: the fields, defaults and checks of :class:`polarshape.scene.sensor.SensorModel`,
-    plus the noise seed."""
+class SensorConfig(SensorModel, SensorDefects):
+    """``sensor:``: the fields, defaults and checks of :class:`polarshape.scene.sensor.SensorModel`
+    and of the imperfect sensor :class:`polarshape.scene.sensor_defects.SensorDefects` (defaults:
+    ideal), plus the noise seed."""
 
     seed: int = 0
 
+    def __post_init__(self) -> None:
+        SensorModel.__post_init__(self)
+        SensorDefects.__post_init__(self)
+
     def to_model(self) -> SensorModel:
         return SensorModel(**{f.name: getattr(self, f.name) for f in fields(SensorModel)})
+
+    def to_defects(self) -> SensorDefects:
+        return self.defects_only()
 
 
 # --- shapes -----------------------------------------------------------------------------------
@@ -192,12 +202,34 @@ class FMBRDFConfig(FMBRDFParams):
     :class:`~polarshape.brdf.FMBRDFParams`, checked against spec §2's ranges."""
 
     model: Literal["fmbrdf"] = "fmbrdf"
+    #: a number (grey) or ``[r, g, b]``: the body albedo per colour channel (colour sensors,
+    #: ``camera.mosaic.bayer``); a list is moved to ``k_b_rgb`` and ``k_b`` becomes its mean
+    k_b: float | tuple[float, float, float] = 0.5  # type: ignore[assignment]
+    #: written by polarshape from ``k_b: [r, g, b]`` (so ``k_b`` stays one number for its readers)
+    k_b_rgb: tuple[float, float, float] | None = None
 
     def __post_init__(self) -> None:
+        if isinstance(self.k_b, tuple):
+            if self.k_b_rgb is not None and tuple(self.k_b_rgb) != tuple(self.k_b):
+                raise ValueError("give the colour body albedo once, as k_b: [r, g, b] (k_b_rgb is written from it)")
+            self.k_b_rgb = self.k_b
+        if self.k_b_rgb is not None:
+            for c, v in zip(("r", "g", "b"), self.k_b_rgb):
+                try:
+                    check_param("k_b", v)
+                except ValueError as err:
+                    raise ValueError(f"k_b [r, g, b]: {c} = {v:g}: {err}") from None
+            mean = sum(self.k_b_rgb) / 3.0
+            if not isinstance(self.k_b, tuple) and not math.isclose(self.k_b, mean, rel_tol=1e-9, abs_tol=1e-12):
+                raise ValueError(
+                    f"k_b {self.k_b:g} and k_b_rgb {list(self.k_b_rgb)} disagree: give the colour body albedo as "
+                    "k_b: [r, g, b] only (polarshape writes k_b_rgb and sets k_b to their mean)"
+                )
+            self.k_b = mean
         self.validate()
 
     def to_material(self) -> Material:
-        return FMBRDFMaterial(**self.as_kwargs())
+        return FMBRDFMaterial(**self.as_kwargs(), k_b_rgb=self.k_b_rgb)
 
 
 class LambertianConfig(_Strict):

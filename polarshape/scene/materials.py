@@ -5,6 +5,13 @@ irradiance at normal incidence from direction L (the N·L foreshortening is insi
 pixel's Stokes frame (spec fmbrdf.md §1), zero where N·L ≤ 0 or N·V ≤ 0. A per-point
 ``albedo_scale`` multiplies the diffuse/body albedo (k_b or k_d) — how textures act.
 
+Colour (a colour polarisation sensor, :mod:`polarshape.imaging.colour`): white lights, so a material
+reflects every colour channel with the same surface (specular) term and its own body albedo; an
+FMBRDF material's ``k_b_rgb`` holds those (R, G, B) albedos and :func:`colour_albedo_factors` the
+per-channel multipliers of ``k_b`` that the renderer applies to each raw pixel's colour (Stokes are
+linear in k_b, so this equals rendering three colours and keeping each pixel's own). Materials
+without a colour (Lambertian, Baek, an FMBRDF without ``k_b_rgb``) are grey: factors (1, 1, 1).
+
 :func:`material_from_file` turns a ``material.json`` (:mod:`polarshape.io.material`) into one.
 """
 
@@ -17,11 +24,13 @@ import torch
 from torch import Tensor
 
 from polarshape.brdf.baselines import baek_pbrdf_stokes, lambertian_stokes
-from polarshape.brdf.fmbrdf import FMBRDFTables, fmbrdf_stokes
+from polarshape.brdf.fmbrdf import FMBRDFTables, check_param, fmbrdf_stokes
 from polarshape.brdf.params import FMBRDFParams
 from polarshape.io.material import MaterialError, MaterialFile
 
-__all__ = ["BaekMaterial", "FMBRDFMaterial", "LambertianMaterial", "Material", "material_from_file"]
+__all__ = [
+    "BaekMaterial", "FMBRDFMaterial", "LambertianMaterial", "Material", "colour_albedo_factors", "material_from_file",
+]
 
 
 @runtime_checkable
@@ -51,13 +60,34 @@ class FMBRDFMaterial(FMBRDFParams):
 
     Attributes:
         exact: use the reference quadrature instead of the tables (slow; tests only).
+        k_b_rgb: body albedo per colour channel (R, G, B) for a colour sensor, or None (grey:
+            every channel ``k_b``). When given, ``k_b`` is set to their mean — what a mono sensor
+            (and the channel-mean recovery) sees under white light.
     """
 
     exact: bool = False
+    k_b_rgb: tuple[float, float, float] | None = None
     _tables: dict[str, FMBRDFTables] = field(default_factory=dict, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
+        if self.k_b_rgb is not None:
+            rgb = tuple(float(v) for v in self.k_b_rgb)
+            if len(rgb) != 3:
+                raise ValueError(f"k_b_rgb must hold three body albedos (R, G, B); got {self.k_b_rgb!r}")
+            for v in rgb:
+                check_param("k_b", v)
+            self.k_b_rgb = rgb  # type: ignore[assignment]
+            self.k_b = sum(rgb) / 3.0
         self.validate()
+
+    @property
+    def colour_factors(self) -> tuple[float, float, float]:
+        """(R, G, B) multipliers of ``k_b`` giving each channel's body albedo ((1, 1, 1) if grey)."""
+        if self.k_b_rgb is None:
+            return (1.0, 1.0, 1.0)
+        if self.k_b <= 0:
+            return (0.0, 0.0, 0.0)  # all channels black
+        return tuple(v / self.k_b for v in self.k_b_rgb)  # type: ignore[return-value]
 
     def tables_on(self, device: torch.device | str) -> FMBRDFTables:
         """This material's fast-path tables on ``device``, built once per device and kept."""
@@ -115,6 +145,16 @@ class BaekMaterial:
             normal, light, view, ior=self.ior, k_s=self.k_s, k_d=self.k_d * albedo_scale, alpha=self.alpha,
             distribution=self.distribution,
         )
+
+
+def colour_albedo_factors(material: Material) -> tuple[float, float, float]:
+    """(R, G, B) multipliers of a material's body/diffuse albedo for the colour channels.
+
+    A material with a ``colour_factors`` attribute (:class:`FMBRDFMaterial` with ``k_b_rgb``)
+    gives its own; every other material is grey, (1, 1, 1).
+    """
+    factors = getattr(material, "colour_factors", (1.0, 1.0, 1.0))
+    return (float(factors[0]), float(factors[1]), float(factors[2]))
 
 
 def material_from_file(material: MaterialFile, source: str = "material file") -> Material:

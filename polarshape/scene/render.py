@@ -12,6 +12,13 @@ pixel, so the four sites of a super-pixel see four different surface points):
    polariser angle of its site.
 
 Radiance is in the units of the lights' intensity (irradiance 1 at normal incidence = 1).
+
+Colour sensors (``bayer``, :mod:`polarshape.imaging.colour`): each raw pixel sees only its own
+colour, so its Stokes vector is that colour's; with white lights the colours differ only in the body
+albedo, and the Stokes vector is linear in it, so the colour is selected before shading (step 2) by
+scaling each pixel's body albedo with its colour's factor (:func:`colour_albedo_map`) — the same as
+rendering (3, 3, H, W) per-colour Stokes and keeping each pixel's channel, at a third of the cost,
+and before the polariser step (4), which stays colour-blind.
 """
 
 from __future__ import annotations
@@ -23,10 +30,14 @@ import torch
 from torch import Tensor
 
 from polarshape.brdf.geometry import sensor_plane_basis, sensor_plane_stokes
+from polarshape.imaging.analyser import analysed_intensity
+from polarshape.imaging.colour import pixel_colours
 from polarshape.imaging.mosaic import MosaicLayout
 from polarshape.lights import Light
+from polarshape.scene.materials import colour_albedo_factors
 from polarshape.scene.objects import Scene
 from polarshape.scene.raycast import GeometryBuffers, cast_shadow_mask
+from polarshape.scene.sensor_defects import SensorMaps
 
 logger = logging.getLogger(__name__)
 
@@ -40,6 +51,27 @@ def albedo_scale_map(scene: Scene, geometry: GeometryBuffers) -> Tensor:
         sel = geometry.object_index == k  # (H, W)
         if sel.any():
             scale[sel] = obj.texture(geometry.points[sel])
+    return scale
+
+
+def colour_albedo_map(scene: Scene, geometry: GeometryBuffers, bayer: str) -> Tensor:
+    """(H, W) per-pixel body-albedo multiplier selecting each raw pixel's colour channel.
+
+    Pixel (y, x) behind colour c on an object with material m gets
+    ``colour_albedo_factors(m)[c]`` (1 for grey materials and off the objects).
+
+    Args:
+        scene: the scene ``geometry`` was rasterised from.
+        geometry: per-pixel buffers at raw-mosaic resolution (2H, 2W).
+        bayer: Bayer pattern of the 2×2 polariser blocks (:data:`polarshape.imaging.colour.BAYER_PATTERNS`).
+    """
+    h, w = geometry.depth.shape
+    colour = pixel_colours(bayer, h, w, device=geometry.depth.device)  # (2H, 2W) 0 R, 1 G, 2 B
+    scale = torch.ones_like(geometry.depth)
+    for k, obj in enumerate(scene.objects):
+        sel = geometry.object_index == k  # (2H, 2W)
+        factors = geometry.depth.new_tensor(colour_albedo_factors(obj.material))  # (3,)
+        scale = torch.where(sel, factors[colour], scale)
     return scale
 
 
@@ -90,19 +122,22 @@ def polariser_angle_map(
     return sites.repeat(height // 2, width // 2)
 
 
-def mosaic_radiance(stokes: Tensor, angle_map: Tensor) -> Tensor:
-    """Each raw pixel behind its own polariser: I = ½ (s0 + s1 cos 2θ + s2 sin 2θ) (spec §1).
+def mosaic_radiance(stokes: Tensor, angle_map: Tensor, diattenuation: Tensor | float = 1.0,
+                    gain: Tensor | float = 1.0) -> Tensor:
+    """Each raw pixel behind its own analyser: I = ½ g (s0 + D (s1 cos 2θ + s2 sin 2θ)) (spec §1;
+    :func:`polarshape.imaging.analyser.analysed_intensity`, the one formula). D = 1, g = 1 is the
+    ideal polariser ``½ (s0 + s1 cos 2θ + s2 sin 2θ)`` (bit-identical to it).
 
     Args:
         stokes: (..., 3, H, W) Stokes at mosaic resolution, sensor-plane angles.
-        angle_map: (H, W) polariser angle of each pixel, radians.
+        angle_map: (H, W) analyser angle of each pixel, radians.
+        diattenuation: (H, W) or scalar D in (0, 1] (real sensors: :mod:`polarshape.scene.sensor_defects`).
+        gain: (H, W) or scalar relative response.
 
     Returns:
-        (..., H, W) radiance behind the polarisers.
+        (..., H, W) radiance behind the analysers.
     """
-    s0, s1, s2 = stokes.unbind(-3)
-    two = 2.0 * angle_map.to(stokes.dtype)
-    return 0.5 * (s0 + s1 * torch.cos(two) + s2 * torch.sin(two))
+    return analysed_intensity(stokes, angle_map.to(stokes.dtype), diattenuation, gain)
 
 
 def render_mosaics(
@@ -114,8 +149,16 @@ def render_mosaics(
     shadows: bool = True,
     device: torch.device | str = "cpu",
     dtype: torch.dtype = torch.float64,
+    bayer: str | None = None,
+    sensor_maps: SensorMaps | None = None,
 ) -> Tensor:
     """Noise-free raw-mosaic radiance for the given lights (default: all).
+
+    ``sensor_maps``: a real sensor's per-pixel analysers and gains
+    (:meth:`polarshape.scene.sensor_defects.SensorDefects.draw`, on the geometry's device); None = ideal.
+
+    ``bayer``: a colour polarisation sensor's Bayer pattern (each pixel sees its own colour,
+    :func:`colour_albedo_map`); None = mono.
 
     Returns:
         (K, H, W) radiance, one mosaic per light index in ``lights``.
@@ -126,9 +169,15 @@ def render_mosaics(
     h, w = geometry.depth.shape
     angle_map = polariser_angle_map(layout, h, w, device=geometry.depth.device, dtype=geometry.depth.dtype)
     albedo = albedo_scale_map(scene, geometry)
+    if bayer is not None:
+        albedo = albedo * colour_albedo_map(scene, geometry, bayer)
     basis = sensor_plane_basis(geometry.view)
     out = []
     for i in indices:
         stokes = shade_stokes(scene, geometry, scene.lights[i], shadows=shadows, albedo_scale=albedo)
-        out.append(mosaic_radiance(sensor_plane_stokes(stokes, basis=basis), angle_map))
+        plane = sensor_plane_stokes(stokes, basis=basis)
+        if sensor_maps is None:
+            out.append(mosaic_radiance(plane, angle_map))
+        else:
+            out.append(mosaic_radiance(plane, sensor_maps.angle_rad, sensor_maps.diattenuation, sensor_maps.gain))
     return torch.stack(out)

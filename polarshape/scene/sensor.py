@@ -7,7 +7,8 @@ Per pixel (spec fmbrdf.md §8):
 2. shot noise: ``Poisson(λ)`` (or its Gaussian approximation ``λ + √λ·N(0, 1)``, or none);
 3. saturation of the photodiode at ``full_well_e``;
 4. read noise ``read_noise_e · N(0, 1)`` electrons;
-5. conversion ``counts = e / e_per_count + black_level``; the conversion factor at bit depth b and
+5. conversion ``counts = e / e_per_count + black_level`` (+ a hot pixel's dark signal,
+   :mod:`polarshape.scene.sensor_defects`); the conversion factor at bit depth b and
    gain g dB is ``e_per_count_12bit · 2^(12 − b) / 10^(g / 20)`` (the ADC is 12-bit: 8-bit formats
    drop 4 bits, 16-bit ones shift 4 bits up) and the black level scales the same way;
 6. rounding to integers and clipping to ``[0, 2^b − 1]`` (ADC saturation).
@@ -99,6 +100,7 @@ class SensorModel:
         gain_db: float = 0.0,
         bit_depth: int = 12,
         generator: torch.Generator | None = None,
+        dark_counts_12bit: Tensor | None = None,
     ) -> np.ndarray:
         """Counts of one exposure.
 
@@ -110,6 +112,9 @@ class SensorModel:
             bit_depth: 8, 10, 12 or 16.
             generator: random source on ``radiance.device`` (None: torch's global generator,
                 not reproducible).
+            dark_counts_12bit: (H, W) extra per-pixel dark signal in 12-bit counts (hot pixels,
+                :mod:`polarshape.scene.sensor_defects`), scaled to ``bit_depth`` like the black
+                level; None = none.
 
         Returns:
             Same shape, ``uint8`` for 8 bits else ``uint16``, low-bit aligned counts.
@@ -129,6 +134,8 @@ class SensorModel:
         if self.read_noise_e > 0:
             electrons = electrons + self.read_noise_e * _normal_like(electrons, generator)
         counts = electrons / self.e_per_count(bit_depth, gain_db) + self.black_level(bit_depth)
+        if dark_counts_12bit is not None:
+            counts = counts + dark_counts_12bit.to(counts) * 2.0 ** (bit_depth - 12)
         counts = torch.round(counts).clamp(0, max_count(bit_depth))
         return to_numpy(counts, np.uint8 if bit_depth == 8 else np.uint16)
 
