@@ -119,9 +119,6 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=None, help="write the figures as JSON")
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
-    from polarshape.recover import preprocess as _pre
-
-    applied = "polarimetric_calibration" in Path(_pre.__file__).read_text()
     captures: dict[str, Capture] = {}
     with tempfile.TemporaryDirectory() as tmp_name:
         tmp = Path(tmp_name)
@@ -149,7 +146,7 @@ def main(argv: list[str] | None = None) -> int:
             rows.append(row)
             print(f"# {name} done", file=sys.stderr, flush=True)
     info = getattr(calibration, "info", {})
-    print(f"blob {args.size}x{args.size} super-pixels, 12 lights; calibration applied in preprocess: {applied}")
+    print(f"blob {args.size}x{args.size} super-pixels, 12 lights")
     print(f"bench estimate: angle error rms {info.get('angle_error_rms_deg', float('nan')):.2f} deg, "
           f"extinction median {info.get('extinction_median', float('nan')):.0f}, gain spread "
           f"{100 * info.get('gain_spread', float('nan')):.2f} %, defects {info.get('defects')}, "
@@ -164,7 +161,7 @@ def main(argv: list[str] | None = None) -> int:
         ratio = rows[2]["normal_error_deg"] / rows[0]["normal_error_deg"]
         print(f"calibrated / ideal normal error: {ratio:.2f} (target <= 1.1)")
     if args.out is not None:
-        args.out.write_text(json.dumps({"size": args.size, "applied": applied, "rows": rows,
+        args.out.write_text(json.dumps({"size": args.size, "rows": rows,
                                         "calibration_info": info}, indent=2, default=str) + "\n")
     return 0
 

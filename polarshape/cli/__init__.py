@@ -106,16 +106,10 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
 @reports_errors()
 def _cmd_inspect(args: argparse.Namespace) -> int:
-    from polarshape.imaging.mosaic import MosaicLayout
+    from polarshape.cli.options import layout_from_flag
     from polarshape.inspect_frame import frame_stats
 
-    labels = args.layout or [90, 45, 135, 0]
-    if sorted(label % 180 for label in labels) != [0, 45, 90, 135]:
-        raise ValueError(
-            f"--layout {' '.join(str(v) for v in labels)}: must hold each of 0, 45, 90, 135 once (top-left, top-right, "
-            "bottom-left, bottom-right; the IMX250MZR is 90 45 135 0)"
-        )
-    layout = MosaicLayout.from_maker([labels[:2], labels[2:]], args.angles)
+    layout = layout_from_flag(args.layout, args.angles)
     st = frame_stats(args.frame, bit_depth=args.bit_depth, black_level=args.black_level, layout=layout, roi=args.roi)
     print(
         f"{args.frame}: mean s0 {st.mean_s0:.4f} of full scale, DoLP {st.mean_dolp:.4f}, AoLP {st.aolp_deg:+.2f} deg "

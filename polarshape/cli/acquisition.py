@@ -89,7 +89,7 @@ def _cmd_calibrate_polarisation(args: argparse.Namespace) -> int:
         estimate_polarimetric_calibration_from_files, summarise_polarimetric_calibration,
     )
     from polarshape.errors import OutputExistsError
-    from polarshape.imaging.mosaic import MosaicLayout
+    from polarshape.cli.options import layout_from_flag
     from polarshape.io.polarimetric import write_polarimetric_calibration
 
     from pathlib import Path
@@ -103,13 +103,7 @@ def _cmd_calibrate_polarisation(args: argparse.Namespace) -> int:
     if out.exists() and not args.overwrite:  # refused before the frames are read
         raise OutputExistsError(f"{out} already exists; refusing to overwrite it (pass --overwrite or another --out)")
     angles = args.angles if args.angles is not None else _read_angles_file(args.angles_file)
-    labels = args.layout or [90, 45, 135, 0]
-    if sorted(label % 180 for label in labels) != [0, 45, 90, 135]:
-        raise ValueError(
-            f"--layout {' '.join(str(v) for v in labels)}: must hold each of 0, 45, 90, 135 once (top-left, top-right, "
-            "bottom-left, bottom-right; the IMX250MZR is 90 45 135 0)"
-        )
-    layout = MosaicLayout.from_maker([labels[:2], labels[2:]], args.layout_angles)
+    layout = layout_from_flag(args.layout, args.layout_angles)
     calibration = estimate_polarimetric_calibration_from_files(
         polariser=args.polariser, angles_deg=angles, angle_convention=args.angle_convention, layout=layout,
         bit_depth=args.bit_depth, flat=args.flat or (), dark=args.dark or (), black_level=args.black_level,

@@ -39,6 +39,19 @@ def _wrap_deg(x: torch.Tensor) -> torch.Tensor:
     return torch.rad2deg((x + math.pi / 2) % math.pi - math.pi / 2)
 
 
+def _estimate_from_bench(bench: Path):  # noqa: ANN202 (PolarimetricCalibration)
+    """The calibration estimated from the simulated bench frames in ``bench`` (flat/, polariser/, dark/)."""
+    from polarshape.acquisition.polarimetric import estimate_polarimetric_calibration
+
+    def stack(sub: str) -> np.ndarray:
+        return np.stack([read_image(p) for p in sorted((bench / sub).glob("*.png"))])
+
+    angles = [float(x) for x in (bench / "polariser" / "angles.txt").read_text().split()]
+    return estimate_polarimetric_calibration(polariser=stack("polariser"), angles_deg=angles,
+                                             layout=MosaicLayout.imx250mzr(), bit_depth=12,
+                                             flat=stack("flat"), dark=stack("dark"), black_level=64.0)
+
+
 def test_maps_reproducible_from_seed_and_statistics_match() -> None:
     layout = MosaicLayout.imx250mzr()
     defects = SensorDefects(analyser_angle_error_deg=1.5, extinction_ratio=150.0, prnu=0.01,
@@ -143,18 +156,9 @@ def test_calibration_frames_written_and_readable(tmp_path: Path) -> None:
 
 
 def test_simulated_calibration_frames_estimate_close_to_truth(tmp_path: Path) -> None:
-    from polarshape.acquisition.polarimetric import estimate_polarimetric_calibration
-
     cam = SimulatedCamera(parse_scene_config(_scene(**REAL)))
     out = cam.render_calibration_frames(tmp_path / "cal", n_flat=16, n_dark=8)
-
-    def stack(sub: str) -> np.ndarray:
-        return np.stack([read_image(p) for p in sorted((out / sub).glob("*.png"))])
-
-    angles = [float(x) for x in (out / "polariser" / "angles.txt").read_text().split()]
-    est = estimate_polarimetric_calibration(polariser=stack("polariser"), angles_deg=angles,
-                                            layout=MosaicLayout.imx250mzr(), bit_depth=12,
-                                            flat=stack("flat"), dark=stack("dark"), black_level=64.0)
+    est = _estimate_from_bench(out)
     truth = read_polarimetric_calibration(out / "truth_polcal.npz")
     assert torch.equal(est.defects, truth.defects)
     good = ~truth.defects
@@ -170,13 +174,9 @@ def test_simulated_calibration_frames_estimate_close_to_truth(tmp_path: Path) ->
 def test_capture_with_simulated_calibration_has_small_dolp_bias(tmp_path: Path) -> None:
     """Imperfect capture + polcal.npz estimated from its bench frames → preprocess → DoLP close to the
     ideal sensor's (issue 16 target: |bias| ≤ 0.002)."""
-    from polarshape.acquisition.polarimetric import estimate_polarimetric_calibration
     from polarshape.io.capture import load_capture, write_capture
     from polarshape.io.polarimetric import write_polarimetric_calibration
     from polarshape.recover import preprocess as pre
-
-    if "polarimetric_calibration" not in Path(pre.__file__).read_text():
-        pytest.skip("preprocess does not apply camera.polarimetric_calibration yet")
 
     def dolp(capture) -> tuple[torch.Tensor, torch.Tensor]:
         inp = pre.preprocess_capture(capture, dtype=torch.float64)
@@ -188,14 +188,7 @@ def test_capture_with_simulated_calibration_has_small_dolp_bias(tmp_path: Path) 
     with real:
         capture = real.render_capture(progress=False)
         bench = real.render_calibration_frames(tmp_path / "bench", n_flat=16, n_dark=8)
-
-    def stack(sub: str) -> np.ndarray:
-        return np.stack([read_image(p) for p in sorted((bench / sub).glob("*.png"))])
-
-    angles = [float(x) for x in (bench / "polariser" / "angles.txt").read_text().split()]
-    est = estimate_polarimetric_calibration(polariser=stack("polariser"), angles_deg=angles,
-                                            layout=MosaicLayout.imx250mzr(), bit_depth=12,
-                                            flat=stack("flat"), dark=stack("dark"), black_level=64.0)
+    est = _estimate_from_bench(bench)
     folder = tmp_path / "capture"
     write_capture(folder, capture)
     write_polarimetric_calibration(folder / "polcal.npz", est)
