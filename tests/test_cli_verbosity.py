@@ -13,8 +13,9 @@ import polarshape.cli as cli
 from polarshape.cli import INTERRUPTED_MESSAGE, build_parser, iter_commands, main, output_options
 
 def _value(action: argparse.Action) -> list[str]:
-    """Values for one argument: its first choice, else ``x.yaml``, as many as ``nargs`` wants."""
-    one = str(next(iter(action.choices))) if action.choices else "x.yaml"
+    """Values for one argument: its first choice, else a number for a numeric option (``12``), else
+    ``x.yaml``, as many as ``nargs`` wants."""
+    one = str(next(iter(action.choices))) if action.choices else "12" if action.type in (int, float) else "x.yaml"
     count = action.nargs if isinstance(action.nargs, int) else 1
     return [one] * count
 
