@@ -522,6 +522,11 @@ class AravisCamera:
                 f"{sorted(PIXEL_FORMATS)}"
             )
         self._read_state()
+        if bayer_of(current) is not None:  # a region set by another program must keep the pattern too
+            try:
+                _check_colour_offsets(current, *self._region[:2])
+            except ValueError as exc:
+                raise CameraError(f"the camera at {self.address}: {exc}; call set_roi() first") from None
         stream = self._call("create the stream", camera.create_stream, None, None)
         if stream is None:
             raise CameraError(f"could not create a stream for the camera at {self.address}")

@@ -279,6 +279,9 @@ def test_switching_to_a_colour_format_checks_the_roi_and_the_device() -> None:
                 cam.configure(pixel_format="BayerRG8")
             cam.configure(pixel_format="BayerRG8", roi=(4, 8, 64, 32))  # both at once: checked together
             assert (cam.pixel_format, cam.roi) == ("BayerRG8", (4, 8, 64, 32))
+            fake.write_register(0x130, 6)  # another program moved the region: frames would not be RGGB
+            with pytest.raises(CameraError, match="multiples of 4"):
+                cam.capture(timeout_s=1.0)
     with FakeGigECamera(serial="PSMONO") as mono:  # a TRI050S-PC has no colour filter
         with _open(mono) as cam, pytest.raises(CameraError, match="does not offer pixel format BayerRG12p"):
             cam.configure(pixel_format="BayerRG12p")
