@@ -25,6 +25,15 @@ def test_capture_with_fake_gige_camera_writes_a_valid_capture(tmp_path: Path, ca
     assert (cap.frames > 0).any()
 
 
+@pytest.mark.usefixtures("require_aravis")
+def test_capture_with_the_fake_colour_camera_records_the_bayer_pattern(tmp_path: Path) -> None:
+    out = tmp_path / "cap"
+    assert main(["capture", str(REPO / "configs" / "sessions" / "fake_colour_camera.yaml"), "--out", str(out)]) == 0
+    cap = load_capture(out)
+    assert cap.frames.shape == (4, 64, 64) and cap.bit_depth == 12 and cap.spec.camera.mosaic.bayer == "RGGB"
+    assert cap.spec.camera.model == "TRI050S-QC" and (cap.frames > 0).any()
+
+
 def test_capture_session_errors_are_reported(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     bad = tmp_path / "bad.yaml"
     bad.write_text(yaml.safe_dump({"camera": {"backend": "aravis"}, "rig": {"type": "manual"}, "lights": [{"direction": [0, 0, -1]}]}))

@@ -1,4 +1,4 @@
-"""GenICam / GigE Vision camera backend on Aravis 0.8 (e.g. a Lucid TRI050S-PC).
+"""GenICam / GigE Vision camera backend on Aravis 0.8 (e.g. a Lucid TRI050S-PC or TRI050S-QC).
 
 :class:`AravisCamera` implements :class:`~polarshape.acquisition.camera.Camera` through Aravis'
 GObject-introspection binding (PyGObject). PyGObject and Aravis are optional: this module imports
@@ -8,8 +8,10 @@ what to install (``scripts/install-system-deps.sh`` and the ``aravis`` extra).
 What it takes care of:
 
 - opening by IP address (unicast GVCP, no broadcast discovery) or by Aravis device id;
-- ExposureTime (µs, auto off), Gain (dB, auto off), PixelFormat (the five PolarizeMono formats,
-  checked against what the device offers), ROI, frame-rate limit, packet size, link throughput
+- ExposureTime (µs, auto off), Gain (dB, auto off), PixelFormat (the five PolarizeMono formats of
+  the mono sensor, the five BayerRG formats of the colour one; checked against what the device
+  offers), ROI (offsets in multiples of 4 with a colour format, so the Bayer pattern of the
+  polariser blocks stays the format's), frame-rate limit, packet size, link throughput
   limit, trigger (free-running, software, hardware on Line0) and an ExposureActive strobe output;
 - a stream with a pool of buffers and an automatically sized socket buffer; every popped buffer is
   pushed back; the stream is released before the camera;
@@ -19,7 +21,8 @@ What it takes care of:
 - 16-bit GigE Vision frame ids that wrap (…, 65535, 1, …): ``Frame.metadata["frame_count"]`` is a
   monotonic 64-bit count (it also advances over dropped frames).
 
-Frames arrive as (H, W) ``uint16`` mosaics in sensor counts (see :mod:`polarshape.imaging.pixel_formats`).
+Frames arrive as (H, W) ``uint16`` mosaics in sensor counts (see :mod:`polarshape.imaging.pixel_formats`);
+a colour format's frames carry their Bayer pattern in ``Frame.bayer``.
 """
 
 from __future__ import annotations
@@ -32,7 +35,7 @@ from typing import Any, Literal
 
 from polarshape.acquisition.camera import CameraError, Frame
 from polarshape.imaging.pixel_formats import format_name_of, payload_size, unpack_mosaic
-from polarshape.imaging.pixels import PIXEL_FORMATS
+from polarshape.imaging.pixels import PIXEL_FORMATS, bayer_of
 
 logger = logging.getLogger(__name__)
 
@@ -60,6 +63,16 @@ def import_aravis() -> Any:
     except (ImportError, ValueError) as exc:
         raise CameraError(f"AravisCamera needs the Aravis 0.8 typelib ({exc}): {INSTALL_HINT}") from exc
     return Aravis
+
+
+def _check_colour_offsets(pixel_format: str, x: int, y: int) -> None:
+    """Refuse ROI offsets that would shift the Bayer pattern of a colour format's polariser blocks."""
+    if x % 4 or y % 4:
+        raise ValueError(
+            f"roi offset (x={x}, y={y}) with the colour format {pixel_format}: a colour polarisation sensor's "
+            f"offsets must be multiples of 4 (one Bayer super-block of 2x2 polariser blocks), so that the "
+            f"frames keep the {bayer_of(pixel_format)} pattern {pixel_format} names"
+        )
 
 
 class FrameCounter:
@@ -238,9 +251,12 @@ class AravisCamera:
                     f"the camera at {self.address} ({self.model}) does not offer pixel format "
                     f"{pixel_format}; it offers {offered}: choose one of those"
                 )
+            if bayer_of(pixel_format) is not None and roi is None:
+                _check_colour_offsets(pixel_format, *self._region[:2])
             if pixel_format != self._pixel_format:
                 self._stop_stream()
                 self._call(f"set PixelFormat={pixel_format}", camera.set_pixel_format_from_string, pixel_format)
+                self._pixel_format = pixel_format  # read back below; set_roi checks against it first
         if roi is not None:
             self.set_roi(*roi)
         if exposure_us is not None:
@@ -350,11 +366,14 @@ class AravisCamera:
     def set_roi(self, x: int, y: int, width: int, height: int) -> None:
         """Set the region of interest in sensor pixels (restarts the stream).
 
-        Offsets should be even so the 2x2 polariser cell keeps its layout; the device's
-        increments are enforced.
+        Offsets should be even so the 2x2 polariser cell keeps its layout; with a colour format
+        (``BayerRG*``) they must be multiples of 4, so that the Bayer pattern of the polariser
+        blocks stays the one the format names. The device's increments are enforced.
         """
         self.open()
         camera = self._camera
+        if bayer_of(self._pixel_format) is not None:
+            _check_colour_offsets(self._pixel_format, x, y)
         sw, sh = self.sensor_size
         if width <= 0 or height <= 0 or x < 0 or y < 0 or x + width > sw or y + height > sh:
             raise ValueError(f"roi (x={x}, y={y}, width={width}, height={height}) does not fit the {sw}x{sh} sensor")
@@ -503,6 +522,11 @@ class AravisCamera:
                 f"{sorted(PIXEL_FORMATS)}"
             )
         self._read_state()
+        if bayer_of(current) is not None:  # a region set by another program must keep the pattern too
+            try:
+                _check_colour_offsets(current, *self._region[:2])
+            except ValueError as exc:
+                raise CameraError(f"the camera at {self.address}: {exc}; call set_roi() first") from None
         stream = self._call("create the stream", camera.create_stream, None, None)
         if stream is None:
             raise CameraError(f"could not create a stream for the camera at {self.address}")
@@ -573,6 +597,7 @@ class AravisCamera:
         x, y = self._region[0], self._region[1]
         return Frame(
             image=image,
+            bayer=bayer_of(pixel_format),
             bit_depth=PIXEL_FORMATS[pixel_format][1],
             pixel_format=pixel_format,
             exposure_us=self._exposure_us,

@@ -31,6 +31,9 @@ class Frame:
         offset_xy: ROI offset (x, y) of ``image`` on the full sensor, in pixels. An odd offset shifts
             the 2x2 polariser pattern.
         metadata: anything else the backend knows.
+        bayer: for a colour polarisation sensor (IMX250MYR, the ``BayerRG*`` formats), the Bayer
+            pattern of the 2x2 polariser blocks of ``image`` (``"RGGB"``: colours of its top-left
+            blocks, :mod:`polarshape.imaging.colour`); None for a mono sensor.
     """
 
     image: np.ndarray
@@ -42,6 +45,7 @@ class Frame:
     timestamp_ns: int = 0
     offset_xy: tuple[int, int] = (0, 0)
     metadata: dict[str, Any] = field(default_factory=dict)
+    bayer: str | None = None
 
 
 @runtime_checkable

@@ -14,7 +14,7 @@ session.yaml --out DIR`` runs)::
       address: 192.168.1.20      # aravis: IP address (preferred) or Aravis device id
       trigger: software          # off | software | line0
       packet_size: 9000          # optional
-      pixel_format: PolarizeMono12p
+      pixel_format: PolarizeMono12p  # a colour TRI050S-QC: BayerRG12p (capture.yaml gets mosaic.bayer RGGB)
       exposure_us: 20000
       gain_db: 0.0
       roi: [0, 0, 2448, 2048]    # optional, x y width height
@@ -49,7 +49,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 from polarshape.acquisition.camera import Camera, CameraError, Frame
 from polarshape.acquisition.lights import LightRig, RigLight
 from polarshape.errors import CaptureError, ConfigError
-from polarshape.imaging.pixels import PIXEL_FORMATS
+from polarshape.imaging.pixels import PIXEL_FORMATS, bayer_of
 from polarshape.io.atomic import OutputExistsError, atomic_path, atomic_write_text
 from polarshape.io.capture import CAPTURE_FORMAT, Distortion, IntrinsicsSpec, LightSpec, MosaicSpec, Projection
 from polarshape.io.yamlfile import load_yaml
@@ -222,6 +222,7 @@ def _frame_metadata(frames: Sequence[Frame], extra: Mapping[str, Any]) -> dict[s
         "frame_counts": [int(f.metadata.get("frame_count", f.frame_id)) for f in frames],
         "timestamps_ns": [int(f.timestamp_ns) for f in frames],
         "offset_xy": [int(v) for v in last.offset_xy],
+        "bayer": last.bayer,
         "saturated_fraction": saturated_fraction(last),
         **extra,
     }
@@ -352,11 +353,20 @@ def _capture_document(camera: Camera, rig: LightRig, metadata: list[dict[str, An
     if len(bit_depths) != 1:
         raise CameraError(f"the frames of this session have different bit depths {sorted(bit_depths)}: "
                           "recapture with one pixel format")
+    bayers = {m.get("bayer") for m in metadata}  # frames of an older polarshape have none: mono
+    if len(bayers) != 1:
+        raise CameraError(f"the frames of this session have different colour mosaics {sorted(map(str, bayers))} "
+                          "(camera.mosaic.bayer): recapture with one pixel format and ROI")
+    bayer = bayers.pop()
     longest = max(m["exposure_us"] for m in metadata)
     model = getattr(camera, "model", "") or type(camera).__name__
     block: dict[str, Any] = {"model": str(model), "projection": "orthographic", "bit_depth": bit_depths.pop(),
-                             "black_level": 0, "mosaic": MosaicSpec().model_dump(mode="json")}
+                             "black_level": 0, "mosaic": MosaicSpec(bayer=bayer).model_dump(mode="json")}
     block.update(dict(camera_info or {}))
+    given = MosaicSpec.model_validate(block["mosaic"]).bayer
+    if given != bayer:
+        raise CameraError(f"camera_info mosaic.bayer {given} contradicts the frames' colour mosaic {bayer} "
+                          "(the pixel format's): drop mosaic.bayer from camera_info or recapture")
     lights = []
     for index, (spec, meta) in enumerate(zip(rig.lights, metadata, strict=True)):
         entry = spec.to_capture_entry()
@@ -516,8 +526,10 @@ def capture_session(
             if cam_cfg.backend == "fake_gige":
                 from polarshape.acquisition.fake_gige import FakeGigECamera
 
-                # the fake's synthetic scene follows a simulated rig
-                light_target = stack.enter_context(FakeGigECamera(address, width=256, height=256))
+                # the fake's synthetic scene follows a simulated rig; a colour format makes it a TRI050S-QC
+                colour = cam_cfg.pixel_format is not None and bayer_of(cam_cfg.pixel_format) is not None
+                light_target = stack.enter_context(FakeGigECamera(
+                    address, model="TRI050S-QC" if colour else "TRI050S-PC", width=256, height=256))
             camera = stack.enter_context(AravisCamera(
                 address, trigger=cam_cfg.trigger, packet_size=cam_cfg.packet_size,
                 frame_rate_hz=cam_cfg.frame_rate_hz))

@@ -28,7 +28,7 @@ from tqdm import tqdm
 
 from polarshape.acquisition.camera import CameraError, Frame
 from polarshape.brdf.geometry import sensor_plane_basis, sensor_plane_stokes
-from polarshape.imaging.pixels import PIXEL_FORMATS, bit_depth_of
+from polarshape.imaging.pixels import PIXEL_FORMATS, bayer_of, bit_depth_of
 from polarshape.checks import resolve_device, to_numpy
 from polarshape.imaging.analyser import PolarimetricCalibration
 from polarshape.imaging.mosaic import our_angle_deg
@@ -133,6 +133,10 @@ class SimulatedCamera:
         if pixel_format is not None:
             if pixel_format not in PIXEL_FORMATS:
                 raise CameraError(f"pixel_format {pixel_format!r} is not supported; use one of {sorted(PIXEL_FORMATS)}")
+            if bayer_of(pixel_format) not in (None, self.bayer):
+                raise CameraError(f"pixel_format {pixel_format} is a colour sensor's ({bayer_of(pixel_format)} Bayer "
+                                  f"blocks) but the scene's camera.mosaic.bayer is {self.bayer}: set it, or use a "
+                                  "PolarizeMono format")
             self.pixel_format = pixel_format
 
     def set_light(self, index: int) -> None:
@@ -151,6 +155,7 @@ class SimulatedCamera:
         image = self._expose(radiance, bit_depth)
         frame = Frame(
             image=image,
+            bayer=self.bayer,  # the sensor's: a colour scene records colour mosaics whatever the format's name
             bit_depth=bit_depth,
             pixel_format=self.pixel_format,
             exposure_us=self.exposure_us,

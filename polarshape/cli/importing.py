@@ -181,9 +181,10 @@ def add_parsers(sub: Any) -> None:
     _add_light_options(arn, order="frame order", named="frame")
     arn.add_argument("--pixel-format", default=None,
                      choices=("PolarizeMono8", "PolarizeMono12", "PolarizeMono12p", "PolarizeMono12Packed",
-                              "PolarizeMono16"),
+                              "PolarizeMono16", "BayerRG8", "BayerRG12", "BayerRG12p", "BayerRG12Packed", "BayerRG16"),
                      help="the camera's PixelFormat: required for .raw; for images, PolarizeMono8 accepts an 8-bit "
-                     "save and PolarizeMono12 says 16-bit values are 12-bit counts")
+                     "save and PolarizeMono12 says 16-bit values are 12-bit counts; BayerRG* (a colour TRI050S-QC) "
+                     "records camera.mosaic.bayer RGGB")
     arn.add_argument("--width", type=int, default=None, metavar="W", help="frame width in pixels (.raw)")
     arn.add_argument("--height", type=int, default=None, metavar="H", help="frame height in pixels (.raw)")
     arn.add_argument("--black-level", type=float, default=0.0, metavar="N",

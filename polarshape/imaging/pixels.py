@@ -20,8 +20,11 @@ from polarshape.checks import check_shape, to_numpy
 __all__ = [
     "saturation_count",
     "BIT_DEPTHS",
+    "COLOUR_PIXEL_FORMATS",
+    "MONO_PIXEL_FORMATS",
     "left_shift_of",
     "PIXEL_FORMATS",
+    "bayer_of",
     "bit_depth_of",
     "check_bit_depth",
     "counts_to_float",
@@ -35,14 +38,38 @@ __all__ = [
 #: Bit depths polarshape understands.
 BIT_DEPTHS: tuple[int, ...] = (8, 10, 12, 16)
 
-#: Pixel formats polarshape understands, by GenICam PFNC name -> (code, bit depth).
-PIXEL_FORMATS: dict[str, tuple[int, int]] = {
+#: Raw mosaic formats of the mono polarisation sensor (IMX250MZR, Lucid TRI050S-PC): Lucid's custom
+#: codes (bit 31 set), as in Arena SDK's PFNC.h (``LUCID_PolarizeMono*``).
+MONO_PIXEL_FORMATS: dict[str, tuple[int, int]] = {
     "PolarizeMono8": (0x81080001, 8),
     "PolarizeMono12p": (0x810C0047, 12),
     "PolarizeMono12Packed": (0x810C0006, 12),
     "PolarizeMono12": (0x81100008, 12),
     "PolarizeMono16": (0x81100007, 16),
 }
+
+#: Raw mosaic formats of the colour polarisation sensor (IMX250MYR, Lucid TRI050S-QC): the 4×4
+#: super-block mosaic (a Bayer filter over the 2×2 polariser blocks) travels in the standard PFNC
+#: Bayer formats, whose name gives the colours of the top-left blocks (``BayerRG`` = RGGB on the
+#: block grid). Codes as in PFNC (Arena SDK's PFNC.h ``PFNC_BayerRG*``, ``GVSP_BayerRG12Packed``;
+#: Aravis' ``ARV_PIXEL_FORMAT_BAYER_RG_*``). Same byte layouts as the PolarizeMono format of the
+#: same suffix (:mod:`polarshape.imaging.pixel_formats`).
+COLOUR_PIXEL_FORMATS: dict[str, tuple[int, int]] = {
+    "BayerRG8": (0x01080009, 8),
+    "BayerRG12p": (0x010C0059, 12),
+    "BayerRG12Packed": (0x010C002B, 12),
+    "BayerRG12": (0x01100011, 12),
+    "BayerRG16": (0x0110002F, 16),
+}
+
+#: Pixel formats polarshape understands, by GenICam PFNC name -> (code, bit depth): the raw mosaic
+#: formats of the mono and the colour polarisation sensors. Lucid's processed polarisation formats
+#: (``PolarizedAngles_*``, ``PolarizedStokes_*``, ``PolarizedDolpAolp_*``, …) are not among them:
+#: capture the raw mosaic.
+PIXEL_FORMATS: dict[str, tuple[int, int]] = {**MONO_PIXEL_FORMATS, **COLOUR_PIXEL_FORMATS}
+
+# PFNC Bayer name prefix -> colours of blocks (0, 0), (0, 1), (1, 0), (1, 1) (polarshape.imaging.colour)
+_BAYER_PREFIXES = {"BayerRG": "RGGB", "BayerGR": "GRBG", "BayerGB": "GBRG", "BayerBG": "BGGR"}
 
 ArrayOrTensor = TypeVar("ArrayOrTensor", np.ndarray, Tensor)
 
@@ -58,10 +85,23 @@ def check_bit_depth(bit_depth: object) -> int:
 
 
 def bit_depth_of(pixel_format: str) -> int:
-    """Significant bits per pixel of a PFNC polarisation format (a key of :data:`PIXEL_FORMATS`: 8, 12 or 16)."""
+    """Significant bits per pixel of a raw polarisation mosaic format (a key of :data:`PIXEL_FORMATS`: 8, 12 or 16)."""
     if pixel_format not in PIXEL_FORMATS:
         raise ValueError(f"pixel_format {pixel_format!r} is not supported; use one of {sorted(PIXEL_FORMATS)}")
     return PIXEL_FORMATS[pixel_format][1]
+
+
+def bayer_of(pixel_format: str) -> str | None:
+    """Bayer pattern of the 2×2 polariser blocks of a frame in ``pixel_format`` (a key of
+    :data:`PIXEL_FORMATS`): ``"RGGB"`` for ``BayerRG*`` (the IMX250MYR / TRI050S-QC), None for the mono
+    ``PolarizeMono*`` formats. It is what ``camera.mosaic.bayer`` of a capture.yaml records.
+
+    Example:
+        >>> bayer_of("BayerRG12p"), bayer_of("PolarizeMono12p")
+        ('RGGB', None)
+    """
+    bit_depth_of(pixel_format)  # raises ValueError naming the supported formats
+    return next((bayer for prefix, bayer in _BAYER_PREFIXES.items() if pixel_format.startswith(prefix)), None)
 
 
 def max_count(bit_depth: int) -> int:

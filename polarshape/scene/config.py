@@ -26,7 +26,7 @@ from polarshape.brdf.fmbrdf import check_param
 from polarshape.brdf.params import FMBRDFParams
 from polarshape.cameras import Camera, OrthographicCamera, PerspectiveCamera
 from polarshape.errors import ConfigError
-from polarshape.imaging.pixels import PIXEL_FORMATS
+from polarshape.imaging.pixels import PIXEL_FORMATS, bayer_of
 from polarshape.io.capture import IntrinsicsSpec, LightSpec, MosaicSpec, Projection
 from polarshape.io.material import MaterialError, load_material
 from polarshape.io.yamlfile import load_yaml
@@ -84,6 +84,10 @@ class CameraConfig(_Strict):
     def _projection_fields(self) -> CameraConfig:
         if self.width % 2 or self.height % 2:
             raise ValueError(f"camera width and height must be even (whole 2x2 blocks), got {self.width}x{self.height}")
+        if bayer_of(self.pixel_format) not in (None, self.mosaic.bayer):
+            raise ValueError(f"camera.pixel_format {self.pixel_format} is a colour sensor's raw format "
+                             f"({bayer_of(self.pixel_format)} Bayer blocks) but camera.mosaic.bayer is "
+                             f"{self.mosaic.bayer}: set mosaic.bayer: {bayer_of(self.pixel_format)}, or use a PolarizeMono format")
         if self.projection == "orthographic" and self.pixel_size_m is None:
             raise ValueError("an orthographic camera needs camera.pixel_size_m (metres per raw pixel)")
         if self.projection == "perspective" and self.intrinsics is None:

@@ -10,11 +10,12 @@ from typing import Any
 import cv2
 import numpy as np
 import pytest
+import torch
 import yaml
 
 from polarshape.acquisition.aravis import AravisCamera
-from polarshape.acquisition.camera import Frame
-from polarshape.acquisition.fake_gige import REFERENCE_EXPOSURE_US, FakeGigECamera
+from polarshape.acquisition.camera import CameraError, Frame
+from polarshape.acquisition.fake_gige import REFERENCE_EXPOSURE_US, FakeGigECamera, synthetic_mosaic
 from polarshape.acquisition.lights import RigLight, SimulatedLightRig
 from polarshape.acquisition.session import average_frames, capture_session, load_session_config, run_capture_session
 from polarshape.io.atomic import OutputExistsError
@@ -291,3 +292,108 @@ def test_fake_camera_capture_is_accepted_by_polarshape_run(tmp_path: Path) -> No
     params = json.loads((tmp_path / "result" / "params.json").read_text())
     assert params["capture"]["lights"] == 4 and params["capture"]["input_type"] == "capture"
     assert (tmp_path / "result" / "mesh.ply").is_file()
+
+
+# -- the colour polarisation camera (IMX250MYR / TRI050S-QC) ------------------------------------------
+
+
+@pytest.mark.usefixtures("require_aravis")
+def test_colour_capture_on_the_fake_tri050s_qc_records_the_bayer_pattern(tmp_path: Path) -> None:
+    """`polarshape capture` with a BayerRG format: a fake TRI050S-QC, raw colour mosaics on disk, and a
+    capture.yaml with camera.mosaic.bayer RGGB that demosaics to per-colour Stokes."""
+    from polarshape.cli import main
+    from polarshape.imaging.colour import colour_stokes_from_mosaic
+    from polarshape.imaging.pixels import counts_to_float
+    from polarshape.io.capture import load_capture
+
+    session = tmp_path / "session.yaml"
+    session.write_text(yaml.safe_dump({
+        "camera": {"backend": "fake_gige", "address": "127.0.0.1", "trigger": "software", "packet_size": 1400,
+                   "pixel_format": "BayerRG12p", "exposure_us": 5000, "roi": [0, 0, 64, 32]},
+        "rig": {"type": "simulated"},
+        "lights": [{"direction": [0.259, 0.0, -0.966]}, {"direction": [0.0, 0.259, -0.966]}],
+        "capture": {"frames_per_light": 1},
+    }))
+    assert main(["capture", str(session), "--out", str(tmp_path / "capture")]) == 0
+    doc = yaml.safe_load((tmp_path / "capture" / "capture.yaml").read_text())
+    assert doc["camera"]["model"] == "TRI050S-QC" and doc["camera"]["bit_depth"] == 12
+    assert doc["camera"]["mosaic"]["bayer"] == "RGGB"
+    capture = load_capture(tmp_path / "capture")
+    assert capture.spec.camera.mosaic.bayer == "RGGB" and capture.frames.shape == (2, 32, 64)
+    for i in range(2):
+        meta = json.loads((tmp_path / "capture" / "frames" / f"{i:03d}.json").read_text())
+        assert meta["pixel_format"] == "BayerRG12p" and meta["bayer"] == "RGGB"
+        # the raw mosaic the fake camera sent (its synthetic scene under light i at 5000 µs)
+        expected = synthetic_mosaic(64, 32, bit_depth=12, frame_id=meta["frame_ids"][0], light=i, exposure_us=5000)
+        np.testing.assert_array_equal(capture.frames[i], expected)
+    stokes = colour_stokes_from_mosaic(counts_to_float(capture.frames, 12), capture.layout, "RGGB")
+    assert stokes.shape == (2, 3, 3, 16, 32) and torch.isfinite(stokes).all()
+
+
+def _small_colour_scene(tmp_path: Path, **camera: Any) -> Path:
+    doc = yaml.safe_load(Path("configs/scenes/colour.yaml").read_text())
+    doc["camera"].update(width=64, height=64, pixel_size_m=2.0e-4, **camera)
+    doc["lights"] = doc["lights"][:2]
+    path = tmp_path / "scene.yaml"
+    path.write_text(yaml.safe_dump(doc))
+    return path
+
+
+def test_colour_capture_on_the_simulated_backend_records_the_bayer_pattern(tmp_path: Path) -> None:
+    """A session on a simulated colour scene (configs/scenes/colour.yaml, made small) in BayerRG8: raw colour
+    mosaics (the orange sphere is redder than blue) and camera.mosaic.bayer RGGB in capture.yaml."""
+    from polarshape.imaging.colour import colour_stokes_from_mosaic
+    from polarshape.imaging.pixels import counts_to_float
+    from polarshape.io.capture import load_capture
+
+    scene = _small_colour_scene(tmp_path)
+    session = tmp_path / "session.yaml"
+    session.write_text(yaml.safe_dump({
+        "camera": {"backend": "simulated", "scene": scene.name, "pixel_format": "BayerRG8"},
+        "rig": {"type": "simulated"},
+    }))
+    capture = load_capture(capture_session(session, tmp_path / "out").parent)
+    assert capture.spec.camera.mosaic.bayer == "RGGB" and capture.bit_depth == 8
+    assert capture.frames.shape == (2, 64, 64)
+    meta = json.loads((tmp_path / "out" / "frames" / "000.json").read_text())
+    assert (meta["pixel_format"], meta["bayer"]) == ("BayerRG8", "RGGB")
+    stokes = colour_stokes_from_mosaic(counts_to_float(capture.frames[0], 8), capture.layout, "RGGB")  # (3, 3, H, W)
+    centre = stokes[:, 0, 12:20, 12:20].mean(dim=(-1, -2))  # s0 per colour at the sphere's centre
+    assert centre[0] > 2 * centre[2] > 0  # body albedo k_b = [0.8, 0.45, 0.15]: red well above blue
+
+
+def test_colour_format_on_a_mono_scene_is_refused(tmp_path: Path) -> None:
+    from polarshape.errors import CameraError
+
+    scene = _small_colour_scene(tmp_path, mosaic={"layout": [[90, 45], [135, 0]], "bayer": None},
+                                pixel_format="PolarizeMono12")
+    session = tmp_path / "session.yaml"
+    session.write_text(yaml.safe_dump({
+        "camera": {"backend": "simulated", "scene": scene.name, "pixel_format": "BayerRG12"},
+        "rig": {"type": "simulated"},
+    }))
+    with pytest.raises(CameraError, match="BayerRG12 is a colour sensor's .* camera.mosaic.bayer is None"):
+        capture_session(session, tmp_path / "out")
+    assert not (tmp_path / "out" / "capture.yaml").exists()
+
+
+def test_frames_of_one_session_must_share_one_colour_mosaic(tmp_path: Path) -> None:
+    @dataclass
+    class _Colour(_StubCamera):
+        def capture(self, timeout_s: float = 5.0) -> Frame:
+            frame = super().capture(timeout_s)
+            return Frame(image=frame.image, bit_depth=12, pixel_format="BayerRG12", exposure_us=frame.exposure_us,
+                         gain_db=0.0, frame_id=frame.frame_id, bayer="RGGB")
+
+    cam = _Colour()
+    path = run_capture_session(cam, SimulatedLightRig(cam, SPECS[:2]), tmp_path / "a")
+    assert yaml.safe_load(path.read_text())["camera"]["mosaic"]["bayer"] == "RGGB"
+    with pytest.raises(CameraError, match="contradicts the frames' colour mosaic RGGB"):
+        run_capture_session(cam, SimulatedLightRig(cam, SPECS[:2]), tmp_path / "b",
+                            camera_info={"mosaic": {"layout": [[90, 45], [135, 0]], "bayer": "BGGR"}})
+    # a light left from a mono run of the same folder cannot be mixed with colour ones
+    mono = _StubCamera()
+    with pytest.raises(KeyboardInterrupt):
+        run_capture_session(mono, _FailingRig(mono, SPECS[:2], fail_at=1), tmp_path / "c")
+    with pytest.raises(CameraError, match="different colour mosaics"):
+        run_capture_session(cam, SimulatedLightRig(cam, SPECS[:2]), tmp_path / "c")

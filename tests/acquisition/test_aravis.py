@@ -22,9 +22,9 @@ from polarshape.acquisition.fake_gige import (
     gvcp_read_register,
     synthetic_mosaic,
 )
-from polarshape.imaging.pixels import PIXEL_FORMATS
+from polarshape.imaging.pixels import COLOUR_PIXEL_FORMATS, MONO_PIXEL_FORMATS, PIXEL_FORMATS
 
-FORMATS = list(PIXEL_FORMATS)
+FORMATS = list(MONO_PIXEL_FORMATS)  # the TRI050S-PC's; the colour TRI050S-QC's are tested below
 _serials = itertools.count(1)
 
 
@@ -230,3 +230,68 @@ def test_full_resolution_frames(fake: FakeGigECamera) -> None:
     for frame in frames:
         assert frame.image.shape == (2048, 2448)
         np.testing.assert_array_equal(frame.image, fake.expected_image(frame))
+
+
+# -- the colour camera: a fake TRI050S-QC (IMX250MYR, Bayer RGGB over the 2x2 polariser blocks) --------
+
+
+@pytest.fixture
+def fake_qc(require_aravis: None) -> Iterator[FakeGigECamera]:
+    with FakeGigECamera(serial=f"PSTESTQ{next(_serials):04d}", model="TRI050S-QC", width=256, height=256,
+                        frame_rate_hz=200.0) as cam:
+        yield cam
+
+
+@pytest.mark.parametrize("pixel_format", list(COLOUR_PIXEL_FORMATS))
+def test_colour_camera_every_raw_format_is_bit_exact(fake_qc: FakeGigECamera, pixel_format: str) -> None:
+    with _open(fake_qc, trigger="software") as cam:
+        assert cam.model == "TRI050S-QC"
+        cam.configure(pixel_format=pixel_format)
+        assert cam.pixel_format == pixel_format
+        assert fake_qc.read_register(0x128) == PIXEL_FORMATS[pixel_format][0]
+        frames = [cam.capture(timeout_s=2.0) for _ in range(3)]
+    for frame in frames:
+        assert frame.pixel_format == pixel_format and frame.bayer == "RGGB"
+        assert frame.bit_depth == PIXEL_FORMATS[pixel_format][1]
+        assert frame.image.dtype == np.uint16 and frame.image.shape == (256, 256)
+        np.testing.assert_array_equal(frame.image, fake_qc.expected_image(frame))
+    assert frames[0].image.max() == (1 << frames[0].bit_depth) - 1  # full range crossed the wire
+
+
+def test_colour_roi_offsets_keep_the_bayer_pattern(fake_qc: FakeGigECamera) -> None:
+    with _open(fake_qc, trigger="software") as cam:
+        cam.configure(roi=(200, 100, 64, 32), pixel_format="BayerRG12p")
+        frame = cam.capture(timeout_s=2.0)
+        assert frame.offset_xy == (200, 100) and frame.bayer == "RGGB" and frame.image.shape == (32, 64)
+        full = synthetic_mosaic(264, 132, bit_depth=12, frame_id=frame.frame_id)
+        np.testing.assert_array_equal(frame.image, full[100:132, 200:264])
+        with pytest.raises(ValueError, match="multiples of 4"):
+            cam.set_roi(2, 0, 64, 32)  # would make the frames' blocks GRBG while the format says RG
+        assert cam.roi == (200, 100, 64, 32)
+
+
+@pytest.mark.usefixtures("require_aravis")
+def test_switching_to_a_colour_format_checks_the_roi_and_the_device() -> None:
+    with FakeGigECamera(serial="PSMIXED", pixel_formats=("PolarizeMono8", "BayerRG8")) as fake:
+        with _open(fake) as cam:
+            cam.configure(roi=(2, 2, 64, 32))
+            with pytest.raises(ValueError, match=r"roi offset \(x=2, y=2\) with the colour format BayerRG8"):
+                cam.configure(pixel_format="BayerRG8")
+            cam.configure(pixel_format="BayerRG8", roi=(4, 8, 64, 32))  # both at once: checked together
+            assert (cam.pixel_format, cam.roi) == ("BayerRG8", (4, 8, 64, 32))
+            fake.write_register(0x130, 6)  # another program moved the region: frames would not be RGGB
+            with pytest.raises(CameraError, match="multiples of 4"):
+                cam.capture(timeout_s=1.0)
+    with FakeGigECamera(serial="PSMONO") as mono:  # a TRI050S-PC has no colour filter
+        with _open(mono) as cam, pytest.raises(CameraError, match="does not offer pixel format BayerRG12p"):
+            cam.configure(pixel_format="BayerRG12p")
+
+
+@pytest.mark.slow
+def test_full_resolution_colour_frames(fake_qc: FakeGigECamera) -> None:
+    with _open(fake_qc, trigger="software", max_attempts=5) as cam:
+        cam.configure(roi=(0, 0, 2448, 2048), pixel_format="BayerRG12p")
+        frames = [cam.capture(timeout_s=3.0) for _ in range(2)]
+    for frame in frames:
+        assert frame.image.shape == (2048, 2448) and frame.bayer == "RGGB"
+        np.testing.assert_array_equal(frame.image, fake_qc.expected_image(frame))

@@ -6,7 +6,13 @@ import numpy as np
 import pytest
 
 from polarshape.imaging.pixel_formats import format_name_of, pack_mosaic, payload_size, unpack_mosaic
-from polarshape.imaging.pixels import PIXEL_FORMATS, bit_depth_of
+from polarshape.imaging.pixels import (
+    COLOUR_PIXEL_FORMATS,
+    MONO_PIXEL_FORMATS,
+    PIXEL_FORMATS,
+    bayer_of,
+    bit_depth_of,
+)
 
 FORMATS = sorted(PIXEL_FORMATS)
 
@@ -38,7 +44,7 @@ def test_bytes_round_trip_is_bit_exact(pixel_format: str) -> None:
     rng = np.random.default_rng(1)
     w, h = 8, 4
     data = rng.integers(0, 256, size=payload_size(pixel_format, w, h), dtype=np.uint8)
-    if pixel_format == "PolarizeMono12":
+    if pixel_format in ("PolarizeMono12", "BayerRG12"):  # 12 significant bits in two bytes
         data[1::2] &= 0x0F
     img = unpack_mosaic(data.tobytes(), pixel_format, width=w, height=h)
     assert pack_mosaic(img, pixel_format) == data.tobytes()
@@ -76,3 +82,40 @@ def test_invalid_input_is_rejected_with_a_clear_message() -> None:
         unpack_mosaic(b"\xff\xff", "PolarizeMono12", width=1, height=1)
     with pytest.raises(ValueError, match="0x01080001"):
         format_name_of(0x01080001)
+
+
+# -- the colour polarisation sensor (IMX250MYR, Lucid TRI050S-QC): raw BayerRG formats ------------
+
+
+def test_colour_formats_have_the_pfnc_codes_and_the_mono_layouts() -> None:
+    """BayerRG* carry the raw 4x4 super-block mosaic with the same bytes as the PolarizeMono format of
+    the same suffix; their codes are PFNC's (as Aravis' ARV_PIXEL_FORMAT_BAYER_RG_* and Arena's PFNC.h)."""
+    assert {name: code for name, (code, _) in COLOUR_PIXEL_FORMATS.items()} == {
+        "BayerRG8": 0x01080009, "BayerRG12p": 0x010C0059, "BayerRG12Packed": 0x010C002B,
+        "BayerRG12": 0x01100011, "BayerRG16": 0x0110002F,
+    }
+    img = _random_mosaic("BayerRG12p", 8, 12, seed=3)
+    for colour, mono in zip(COLOUR_PIXEL_FORMATS, MONO_PIXEL_FORMATS, strict=True):
+        assert bit_depth_of(colour) == bit_depth_of(mono)
+        counts = img >> (12 - bit_depth_of(colour)) if bit_depth_of(colour) < 12 else img
+        assert pack_mosaic(counts, colour) == pack_mosaic(counts, mono)
+    assert pack_mosaic(np.array([[0x123, 0xABC]], np.uint16), "BayerRG12p") == bytes([0x23, 0xC1, 0xAB])
+    assert pack_mosaic(np.array([[0x123, 0xABC]], np.uint16), "BayerRG12Packed") == bytes([0x12, 0xC3, 0xAB])
+    with pytest.raises(ValueError, match="BayerRG16"):
+        unpack_mosaic(b"\xff\xff", "BayerRG12", width=1, height=1)
+
+
+def test_which_formats_are_colour() -> None:
+    assert {name: bayer_of(name) for name in PIXEL_FORMATS} == {
+        **{name: None for name in MONO_PIXEL_FORMATS}, **{name: "RGGB" for name in COLOUR_PIXEL_FORMATS}}
+    with pytest.raises(ValueError, match="BayerGR8"):
+        bayer_of("BayerGR8")  # not a format of the TRI050S-QC: refused, not guessed
+
+
+def test_full_colour_frame_round_trip_is_bit_exact() -> None:
+    """A full 2448x2048 IMX250MYR mosaic through every colour format, bytes and counts."""
+    for name in COLOUR_PIXEL_FORMATS:
+        img = _random_mosaic(name, 2048, 2448, seed=5)
+        data = pack_mosaic(img, name)
+        assert len(data) == payload_size(name, 2448, 2048)
+        np.testing.assert_array_equal(unpack_mosaic(data, name, width=2448, height=2048), img)

@@ -370,4 +370,41 @@ def test_ordinary_captures_do_not_warn(tmp_path: Path, sphere: Capture) -> None:
 
 def test_arena_formats_are_the_cameras() -> None:
     assert set(ARENA_PIXEL_FORMATS) == {"PolarizeMono8", "PolarizeMono12", "PolarizeMono12p", "PolarizeMono12Packed",
-                                        "PolarizeMono16"}
+                                        "PolarizeMono16", "BayerRG8", "BayerRG12", "BayerRG12p", "BayerRG12Packed",
+                                        "BayerRG16"}  # TRI050S-PC, then the colour TRI050S-QC
+
+
+# --- the colour polarisation camera (TRI050S-QC, IMX250MYR): raw BayerRG saves ---------------------
+
+COLOUR_RAW = {"BayerRG8": "PolarizeMono8", "BayerRG12": "PolarizeMono12", "BayerRG12p": "PolarizeMono12p",
+              "BayerRG12Packed": "PolarizeMono12Packed", "BayerRG16": "PolarizeMono16"}
+
+
+@pytest.mark.parametrize("colour_format", list(COLOUR_RAW))
+def test_colour_raw_saves_import_as_colour_mosaics(tmp_path: Path, colour_format: str) -> None:
+    """A TRI050S-QC .raw save has the byte layout of the PolarizeMono format of the same suffix; the capture
+    keeps the counts bit-exactly and records camera.mosaic.bayer RGGB (what colour recovery needs)."""
+    bits = 8 if colour_format.endswith("8") else 12
+    frames = np.random.default_rng(7).integers(0, 1 << bits, size=(3, 8, 12), dtype=np.uint16)
+    (tmp_path / "arena").mkdir()
+    for k, counts in enumerate(frames, start=1):
+        (tmp_path / "arena" / f"frame_{k}.raw").write_bytes(_raw_bytes(counts, COLOUR_RAW[colour_format]))
+    (tmp_path / "lights.txt").write_text("0 0 1\n0.2 0 0.98\n0 0.2 0.98\n")
+    capture = import_arena(tmp_path / "arena", tmp_path / "capture", lights=tmp_path / "lights.txt",
+                           light_frame="diligent", pixel_format=colour_format, width=12, height=8)
+    loaded = load_capture(tmp_path / "capture")
+    assert loaded.spec.camera.mosaic.bayer == "RGGB" and capture.spec.camera.mosaic.bayer == "RGGB"
+    assert loaded.bit_depth == bits and np.array_equal(loaded.frames, frames)
+    assert loaded.ground_truth["source"]["left_shift"] == (4 if colour_format == "BayerRG16" else 0)
+
+
+def test_eight_bit_colour_saves_are_read_with_bayer_rg8(tmp_path: Path) -> None:
+    counts = np.random.default_rng(8).integers(0, 256, size=(8, 8), dtype=np.uint16)
+    path = tmp_path / "frame.raw"
+    path.write_bytes(counts.astype(np.uint8).tobytes())
+    assert read_arena_frame(path, pixel_format="BayerRG8", width=8, height=8).counts.tolist() == counts.tolist()
+    png = tmp_path / "frame.png"
+    cv2.imwrite(str(png), counts.astype(np.uint8))
+    assert read_arena_frame(png, pixel_format="BayerRG8").bit_depth == 8
+    with pytest.raises(CaptureError, match="BayerRG8 for a colour camera"):
+        read_arena_frame(png, pixel_format="BayerRG12")

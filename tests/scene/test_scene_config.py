@@ -103,6 +103,8 @@ def test_every_shape_and_material_kind(tmp_path):
         (dict(camera={"projection": "perspective"}), "intrinsics"),
         (dict(camera={"projection": "orthographic", "pixel_size_m": 1e-3, "width": 15}), "even"),
         (dict(camera={"projection": "orthographic", "pixel_size_m": 1e-3, "pixel_format": "Mono8"}), "pixel_format"),
+        (dict(camera={"projection": "orthographic", "pixel_size_m": 1e-3, "pixel_format": "BayerRG12"}),
+         "colour sensor's raw format .* set mosaic.bayer: RGGB"),
         (dict(objects=[{"shape": {"type": "cube", "size": 1}}]), "objects.0.shape"),
         (dict(objects=[{"shape": {"type": "sphere", "center": [0, 0, 1], "radius": -1}}]), "radius"),
         (dict(objects=[{"shape": {**UNIT_SPHERE, "colour": 3}}]), "colour"),
@@ -146,3 +148,8 @@ def test_a_backdrop_behind_the_object_does_not_excuse_a_light_behind_it():
     objects = [*BASE["objects"], backdrop]
     with pytest.raises(ValueError, match=r"lights\[0\]\.position .*objects\[0\], z = 1 m"):
         parse_scene_config(_with(objects=objects, lights=[{"position": [0, 0, 1.5]}]))
+
+
+def test_the_colour_scene_records_in_a_colour_raw_format():
+    config = load_scene_config(SCENES / "colour.yaml")
+    assert config.camera.mosaic.bayer == "RGGB" and config.camera.pixel_format.startswith("BayerRG")

@@ -10,7 +10,10 @@ file. What each kind of file holds, and what the import makes of it:
   ``PolarizeMono8`` (a byte per pixel), ``PolarizeMono12`` and ``PolarizeMono16`` (two bytes,
   little-endian, low-bit aligned), ``PolarizeMono12p`` (PFNC: one LSB-first bit stream, two pixels
   in three bytes) and ``PolarizeMono12Packed`` (GigE Vision: two pixels in three bytes, the shared
-  middle byte holding both low nibbles). The file size must be exactly one frame.
+  middle byte holding both low nibbles). The file size must be exactly one frame. A colour
+  polarisation camera (TRI050S-QC, Sony IMX250MYR) saves its raw 4×4 super-block mosaic in the
+  ``BayerRG8`` / ``BayerRG12`` / ``BayerRG12p`` / ``BayerRG12Packed`` / ``BayerRG16`` formats, with the
+  same byte layouts; the capture then records ``camera.mosaic.bayer: RGGB``.
 - ``.tif`` / ``.tiff`` / ``.png``, one channel, 16-bit — counts in a 16-bit container. 12-bit
   counts are often stored **high-bit aligned** (left-shifted by 4: every count a multiple of 16,
   full scale 65520), as Arena does when it saves PolarizeMono12 data in 16 bits, and the IMX250MZR's
@@ -20,8 +23,10 @@ file. What each kind of file holds, and what the import makes of it:
   ``ground_truth/source.json``. 10-bit (multiples of 64) and 8-bit (of 256) counts in 16 bits are
   found the same way. Counts that never exceed 4095 are kept as 16-bit unless ``pixel_format``
   says they are 12-bit (``PolarizeMono12``); the notes point that out.
-- 8-bit single-channel PNG/TIFF — refused unless ``pixel_format="PolarizeMono8"`` says it is a real
-  8-bit save of the sensor counts: an 8-bit PNG from ArenaView is usually a display image.
+- 8-bit single-channel PNG/TIFF — refused unless ``pixel_format="PolarizeMono8"`` (or ``BayerRG8``)
+  says it is a real 8-bit save of the sensor counts: an 8-bit PNG from ArenaView is usually a
+  display image. A colour camera's 16-bit saves need ``pixel_format`` (a ``BayerRG*`` one) to be
+  imported as colour mosaics; without it they are taken for a mono sensor's.
 - ``.bmp``, ``.jpg`` / ``.jpeg`` and any colour image — always refused: a display image
   (tone-mapped, 8-bit, possibly demosaiced or false-coloured), not the sensor's counts.
 
@@ -47,7 +52,7 @@ import numpy as np
 
 from polarshape.errors import CaptureError
 from polarshape.imaging.pixel_formats import payload_size, unpack_mosaic
-from polarshape.imaging.pixels import bit_depth_of, left_shift_of, max_count
+from polarshape.imaging.pixels import COLOUR_PIXEL_FORMATS, bayer_of, bit_depth_of, left_shift_of, max_count
 from polarshape.io.images import ImageError, decode_image
 from polarshape.io.capture import CAPTURE_FORMAT, Capture, parse_capture_spec, write_capture
 from polarshape.io.importers.destination import check_import_destination
@@ -70,9 +75,10 @@ __all__ = [
     "read_arena_frame",
 ]
 
-#: Pixel formats a ``.raw`` save may hold (the TRI050S-PC's polarisation formats).
+#: Pixel formats a ``.raw`` save may hold: the TRI050S-PC's raw polarisation formats, then the colour
+#: TRI050S-QC's raw ``BayerRG*`` ones.
 ARENA_PIXEL_FORMATS: tuple[str, ...] = ("PolarizeMono8", "PolarizeMono12", "PolarizeMono12p",
-                                        "PolarizeMono12Packed", "PolarizeMono16")
+                                        "PolarizeMono12Packed", "PolarizeMono16", *COLOUR_PIXEL_FORMATS)
 RAW_SUFFIXES: tuple[str, ...] = (".raw",)
 PICTURE_SUFFIXES: tuple[str, ...] = (".tif", ".tiff", ".png")
 #: Suffixes of the files the import reads.
@@ -123,18 +129,20 @@ class _Stored:
 
 def _pixels_in(size: int, pixel_format: str) -> int | None:
     """The pixel count whose ``pixel_format`` payload is ``size`` bytes, or None."""
-    if pixel_format in ("PolarizeMono12p", "PolarizeMono12Packed"):
+    if pixel_format.endswith(("12p", "12Packed")):
         for n in (2 * size // 3, (2 * size - 1) // 3):
             if n > 0 and payload_size(pixel_format, n, 1) == size:
                 return n
         return None
-    per_pixel = 1 if pixel_format == "PolarizeMono8" else 2
+    per_pixel = 1 if bit_depth_of(pixel_format) == 8 else 2
     return size // per_pixel if size % per_pixel == 0 and size else None
 
 
 def _sizes_that_fit(size: int, pixel_format: str, width: int, height: int) -> list[str]:
-    """Pixel formats and sizes a ``size``-byte .raw file would be (for the error message)."""
-    fits = [f"{f} at {width}x{height}" for f in ARENA_PIXEL_FORMATS if payload_size(f, width, height) == size]
+    """Pixel formats and sizes a ``size``-byte .raw file would be (for the error message); formats of the
+    same camera only (mono or colour: their byte layouts are the same)."""
+    family = [f for f in ARENA_PIXEL_FORMATS if bayer_of(f) == bayer_of(pixel_format)]
+    fits = [f"{f} at {width}x{height}" for f in family if payload_size(f, width, height) == size]
     n = _pixels_in(size, pixel_format)
     if n is not None:
         if n % width == 0 and n // width != height:
@@ -142,7 +150,7 @@ def _sizes_that_fit(size: int, pixel_format: str, width: int, height: int) -> li
         if n % height == 0 and n // height != width:
             fits.append(f"{pixel_format} at {n // height}x{height}")
     if (width, height) != FULL_FRAME:
-        fits += [f"{f} at {FULL_FRAME[0]}x{FULL_FRAME[1]} (a full TRI050S-PC frame)" for f in ARENA_PIXEL_FORMATS
+        fits += [f"{f} at {FULL_FRAME[0]}x{FULL_FRAME[1]} (a full TRI050S-PC/QC frame)" for f in family
                  if payload_size(f, *FULL_FRAME) == size]
     return fits
 
@@ -199,20 +207,22 @@ def _read_picture(path: Path, pixel_format: str | None) -> _Stored:
         raise CaptureError(f"{path}: pixel type {image.dtype}; sensor counts are 8- or 16-bit unsigned integers: "
                            f"{_SAVE_FIX}")
     name = "TIFF" if path.suffix.lower() in (".tif", ".tiff") else "PNG"
+    if pixel_format is not None and pixel_format not in ARENA_PIXEL_FORMATS:
+        raise CaptureError(f"{path}: pixel format {pixel_format!r} is not one of {list(ARENA_PIXEL_FORMATS)}")
+    eight_bit = pixel_format is not None and bit_depth_of(pixel_format) == 8
     if image.dtype == np.uint8:
         if pixel_format is None:
             raise CaptureError(f"{path}: an 8-bit {name} is usually {_PREVIEW_REASON}; {_SAVE_FIX}. If it really is "
                                "an 8-bit save of the counts (PixelFormat PolarizeMono8, nothing adjusted for "
                                "display), pass --pixel-format PolarizeMono8")
-        if pixel_format != "PolarizeMono8":
+        if not eight_bit:
             raise CaptureError(f"{path}: an 8-bit {name} cannot hold {pixel_format} counts; give --pixel-format "
-                               "PolarizeMono8 if it is an 8-bit save, else save the frames as 16-bit")
+                               "PolarizeMono8 (BayerRG8 for a colour camera) if it is an 8-bit save, else save the "
+                               "frames as 16-bit")
         return _Stored(values=image.astype(np.uint16), kind=f"8-bit {name}", container_bits=8, declared_bits=8)
-    if pixel_format == "PolarizeMono8":
-        raise CaptureError(f"{path}: a 16-bit {name}, but --pixel-format PolarizeMono8 says 8-bit counts; drop "
+    if eight_bit:
+        raise CaptureError(f"{path}: a 16-bit {name}, but --pixel-format {pixel_format} says 8-bit counts; drop "
                            "--pixel-format (16-bit data are read as they are) or give the format the camera used")
-    if pixel_format is not None and pixel_format not in ARENA_PIXEL_FORMATS:
-        raise CaptureError(f"{path}: pixel format {pixel_format!r} is not one of {list(ARENA_PIXEL_FORMATS)}")
     bits = None if pixel_format is None else bit_depth_of(pixel_format)
     return _Stored(values=image, kind=f"16-bit {name}", container_bits=16, declared_bits=None if bits == 16 else bits)
 
@@ -462,6 +472,8 @@ def import_arena(
         model += f", stored left-shifted by {shift} bits (high-bit aligned) and shifted right by {shift} on import"
     camera: dict[str, Any] = {"model": model, "projection": "orthographic", "bit_depth": bits,
                               "black_level": float(black_level)}
+    if pixel_format is not None and bayer_of(pixel_format) is not None:  # a colour camera's raw mosaic
+        camera["mosaic"] = {"bayer": bayer_of(pixel_format)}
     if intrinsics is not None:
         fx, fy, cx, cy = (float(v) for v in intrinsics)
         camera.update(projection="perspective", intrinsics={"fx": fx, "fy": fy, "cx": cx, "cy": cy})
