@@ -45,6 +45,7 @@ from polarshape.scene.render import (
     polariser_angle_map,
     shade_stokes,
 )
+from polarshape.scene.interreflection import HemisphereHits, hemisphere_hits, one_bounce_stokes
 from polarshape.scene.config import SceneConfig, load_scene_config
 from polarshape.scene.materials import colour_albedo_factors
 from polarshape.scene.objects import Scene
@@ -85,6 +86,7 @@ class SimulatedCamera:
         self._angle_map: Tensor | None = None
         self._basis: Tensor | None = None
         self._maps: SensorMaps | None = None  # per-pixel analysers/gains/hot pixels; None = ideal sensor
+        self._bounce: HemisphereHits | None = None  # render.interreflection's rays; None = direct light only
         self._radiance: dict[int, Tensor] = {}
         self._generator: torch.Generator | None = None
         self._frame_id = 0
@@ -108,6 +110,9 @@ class SimulatedCamera:
         h, w = geometry.depth.shape
         self._angle_map = polariser_angle_map(self.layout, h, w, device=self.device, dtype=self.dtype)
         self._basis = sensor_plane_basis(geometry.view)
+        bounce = self.config.render.interreflection
+        if bounce is not None:  # the hemisphere rays are cast once per view, for every light
+            self._bounce = hemisphere_hits(scene, geometry, bounce.samples, seed=bounce.seed)
         if not self.defects.is_ideal:  # drawn once from sensor.defects_seed: the same camera for every frame
             self._maps = self.defects.draw(self.layout, h, w).to(self.device, self.dtype)
         self._generator = torch.Generator(device=self.device)
@@ -175,6 +180,7 @@ class SimulatedCamera:
         self._angle_map = None
         self._basis = None
         self._maps = None
+        self._bounce = None
         self._radiance.clear()
         self._generator = None
 
@@ -206,9 +212,13 @@ class SimulatedCamera:
         if light_index not in self._radiance:
             scene, geometry = self.scene, self.geometry
             assert self._albedo is not None and self._angle_map is not None and self._basis is not None
+            light = scene.lights[light_index]
             stokes = shade_stokes(
-                scene, geometry, scene.lights[light_index], shadows=self.config.render.shadows, albedo_scale=self._albedo
+                scene, geometry, light, shadows=self.config.render.shadows, albedo_scale=self._albedo
             )  # (3, H, W), per-pixel Stokes frames
+            if self._bounce is not None:  # light bounced once off the scene (render.interreflection)
+                stokes = stokes + one_bounce_stokes(scene, geometry, self._bounce, light,
+                                                    shadows=self.config.render.shadows, albedo_scale=self._albedo)
             self._radiance = {light_index: self._analyse(sensor_plane_stokes(stokes, basis=self._basis))}
         return self._radiance[light_index]
 

@@ -55,6 +55,17 @@ def safe_atan2(y: Tensor, x: Tensor) -> Tensor:
     return torch.atan2(torch.where(at_origin, torch.zeros_like(y), y), torch.where(at_origin, torch.ones_like(x), x))
 
 
+def tangent_basis(n: Tensor) -> tuple[Tensor, Tensor]:
+    """Two unit vectors (..., 3) orthogonal to the unit vectors n (..., 3) and to each other
+    (t1 = n × x̂ normalised, or n × ŷ where n is within 26° of x̂; t2 = n × t1)."""
+    use_x = (n[..., 0].abs() < 0.9).unsqueeze(-1)  # (..., 1)
+    ref = torch.where(use_x, n.new_tensor([1.0, 0.0, 0.0]), n.new_tensor([0.0, 1.0, 0.0]))
+    t1 = torch.linalg.cross(n, ref.expand_as(n))
+    t1 = t1 / t1.norm(dim=-1, keepdim=True)
+    t2 = torch.linalg.cross(n, t1)
+    return t1, t2
+
+
 def stokes_frame(view: Tensor) -> tuple[Tensor, Tensor]:
     """The pixel's Stokes frame of spec §1.
 

@@ -21,6 +21,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from polarshape.brdf.geometry import tangent_basis
 from polarshape.brdf.fmbrdf import FMBRDFTables
 from polarshape.recover.observations import Observations
 from polarshape.recover.reflectometry import channel_weights, huber, render_parts, solve_albedos
@@ -43,18 +44,6 @@ _COS_5DEG = math.cos(math.radians(5.0))
 def unit(x: Tensor) -> Tensor:
     """x / |x| along the last axis (zero vectors stay finite)."""
     return x / x.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-
-
-def tangent_basis(n: Tensor) -> tuple[Tensor, Tensor]:
-    """Two unit vectors (P, 3) orthogonal to n (P, 3) and to each other."""
-    ref = torch.zeros_like(n)
-    use_x = n[:, 0].abs() < 0.9
-    ref[:, 0] = use_x.to(n.dtype)
-    ref[:, 1] = (~use_x).to(n.dtype)
-    t1 = torch.linalg.cross(n, ref)
-    t1 = t1 / t1.norm(dim=-1, keepdim=True)
-    t2 = torch.linalg.cross(n, t1)
-    return t1, t2
 
 
 @dataclass(frozen=True)

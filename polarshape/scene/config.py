@@ -31,7 +31,7 @@ from polarshape.io.capture import IntrinsicsSpec, LightSpec, MosaicSpec, Project
 from polarshape.io.material import MaterialError, load_material
 from polarshape.io.yamlfile import load_yaml
 from polarshape.lights import DirectionalLight, Light
-from polarshape.scene.geometry import BlobShape, MeshShape, PlaneShape, Shape, SphereShape, TorusShape
+from polarshape.scene.geometry import BlobShape, CraterShape, MeshShape, PlaneShape, Shape, SphereShape, TorusShape
 from polarshape.scene.materials import BaekMaterial, FMBRDFMaterial, LambertianMaterial, Material, material_from_file
 from polarshape.scene.objects import Scene, SceneObject
 from polarshape.scene.sensor import SensorModel
@@ -194,7 +194,29 @@ class MeshConfig(_Strict):
         )
 
 
-ShapeConfig = Annotated[SphereConfig | PlaneConfig | BlobConfig | TorusConfig | MeshConfig, Field(discriminator="type")]
+class CraterConfig(_Strict):
+    """A plate facing the camera with a round dish pressed into it (concave: light bounces inside)."""
+
+    type: Literal["crater"]
+    center: Vec3
+    radius: float = Field(gt=0)
+    depth: float = Field(gt=0)
+    half_width: float = Field(gt=0)
+    resolution: int = Field(257, ge=8, le=2049)
+
+    @model_validator(mode="after")
+    def _dish_on_the_plate(self) -> CraterConfig:
+        if self.half_width <= self.radius:
+            raise ValueError(f"half_width {self.half_width:g} must exceed the dish radius {self.radius:g} (the plate holds the dish)")
+        return self
+
+    def to_shape(self, base_dir: Path | None) -> Shape:
+        return CraterShape(self.center, self.radius, self.depth, half_width=self.half_width, resolution=self.resolution)
+
+
+ShapeConfig = Annotated[
+    SphereConfig | PlaneConfig | BlobConfig | TorusConfig | MeshConfig | CraterConfig, Field(discriminator="type")
+]
 
 
 # --- materials and textures -------------------------------------------------------------------
@@ -358,9 +380,18 @@ class LightConfig(LightSpec):
 # --- the whole scene --------------------------------------------------------------------------
 
 
+class InterreflectionConfig(_Strict):
+    """``render.interreflection``: one bounce of light off the scene (:mod:`polarshape.scene.interreflection`)."""
+
+    samples: int = Field(64, ge=1, le=4096)  # hemisphere rays per pixel
+    seed: int = 0  # seed of the ray directions
+
+
 class RenderConfig(_Strict):
     shadows: bool = True
     dtype: Literal["float32", "float64"] = "float64"
+    #: light bounced once off the scene itself (concave objects); None = direct light only
+    interreflection: InterreflectionConfig | None = None
 
 
 class SceneConfig(_Strict):

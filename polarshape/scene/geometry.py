@@ -522,3 +522,39 @@ def _torus_mesh(major_radius: float, minor_radius: float, major_sections: int, m
     if mesh.volume < 0:
         mesh.invert()
     return mesh
+
+
+def crater_mesh(center: Sequence[float], radius: float, depth: float, half_width: float, resolution: int) -> trimesh.Trimesh:
+    """A square plate facing the camera with a round dish pressed into it (a concave test object).
+
+    The plate is the plane ``z = center_z`` over ``|x − cx|, |y − cy| ≤ half_width``; within
+    ``ρ < radius`` of the centre the surface sinks away from the camera to
+    ``z = center_z + depth · (1 − (ρ / radius)²)²``, whose slope is zero at the rim and at the bottom
+    (a smooth surface, C¹). Vertices on a ``resolution × resolution`` grid, metres, camera frame.
+    """
+    cx, cy, cz = _as_vec3(center, "center")
+    if not (radius > 0 and depth > 0 and half_width > radius):
+        raise ValueError(f"crater needs radius > 0, depth > 0 and half_width > radius; got {radius}, {depth}, {half_width}")
+    if resolution < 8:
+        raise ValueError(f"crater resolution must be ≥ 8 vertices per side; got {resolution}")
+    u = np.linspace(-half_width, half_width, resolution)
+    x, y = np.meshgrid(u, u, indexing="xy")  # (R, R)
+    rho = np.hypot(x, y)
+    z = cz + depth * np.clip(1.0 - (rho / radius) ** 2, 0.0, None) ** 2
+    vertices = np.stack([x + cx, y + cy, z], axis=-1).reshape(-1, 3)
+    i = np.arange(resolution - 1)
+    a = (i[:, None] * resolution + i[None, :]).reshape(-1)  # top-left corner of each grid cell
+    b, c, d = a + 1, a + resolution, a + resolution + 1
+    # wound so that the face normals point toward the camera (−z)
+    faces = np.concatenate([np.stack([a, c, b], -1), np.stack([b, c, d], -1)])
+    return trimesh.Trimesh(vertices, faces, process=False)
+
+
+class CraterShape(MeshShape):
+    """:func:`crater_mesh` as a shape: an open surface seen from its front (two-sided)."""
+
+    two_sided = True
+
+    def __init__(self, center: Sequence[float], radius: float, depth: float, *, half_width: float,
+                 resolution: int = 257) -> None:
+        super().__init__(crater_mesh(center, radius, depth, half_width, resolution), smooth=True)

@@ -42,6 +42,29 @@ class GeometryBuffers:
     view: Tensor
 
 
+def nearest_hits(shapes: Sequence[Shape], origins: Tensor, directions: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """The first hit of each ray among ``shapes``.
+
+    Args:
+        shapes: the scene's shapes.
+        origins, directions: (N, 3) rays (unit directions), metres, camera frame.
+
+    Returns:
+        t (N,) (``inf`` where every shape is missed), the hit shape's normal there (N, 3) (zero
+        where missed) and the index of the shape hit (N,) int64 (−1 where missed).
+    """
+    best_t = torch.full((origins.shape[0],), math.inf, dtype=origins.dtype, device=origins.device)  # (N,)
+    best_n = torch.zeros_like(origins)  # (N, 3)
+    index = torch.full((origins.shape[0],), -1, dtype=torch.int64, device=origins.device)  # (N,)
+    for k, shape in enumerate(shapes):
+        t, n = shape.intersect(origins, directions)
+        closer = t < best_t
+        best_t = torch.where(closer, t, best_t)
+        best_n = torch.where(closer[:, None], n, best_n)
+        index = torch.where(closer, torch.full_like(index, k), index)
+    return best_t, best_n, index
+
+
 def rasterize(
     shapes: Sequence[Shape],
     camera: Camera,
@@ -63,15 +86,7 @@ def rasterize(
     origins, directions = camera.rays(device=device, dtype=dtype)  # (H, W, 3) each
     h, w = origins.shape[:2]
     o, d = origins.reshape(-1, 3), directions.reshape(-1, 3)  # (P, 3)
-    best_t = torch.full((o.shape[0],), math.inf, dtype=dtype, device=device)  # (P,)
-    best_n = torch.zeros_like(o)  # (P, 3)
-    index = torch.full((o.shape[0],), -1, dtype=torch.int64, device=device)  # (P,)
-    for k, shape in enumerate(shapes):
-        t, n = shape.intersect(o, d)
-        closer = t < best_t
-        best_t = torch.where(closer, t, best_t)
-        best_n = torch.where(closer[:, None], n, best_n)
-        index = torch.where(closer, torch.full_like(index, k), index)
+    best_t, best_n, index = nearest_hits(shapes, o, d)
     mask = torch.isfinite(best_t)
     points = torch.where(mask[:, None], o + torch.where(mask, best_t, 0.0)[:, None] * d, 0.0)  # (P, 3)
     view = camera.view_directions(torch.where(mask[:, None], points, d))  # (P, 3)

@@ -101,6 +101,24 @@ def shade_stokes(
         lit &= ~cast_shadow_mask(scene.shapes, geometry, light)
     if albedo_scale is None:
         albedo_scale = albedo_scale_map(scene, geometry)
+    return shade_directions(scene, geometry, light_dir, irradiance, lit, albedo_scale)
+
+
+def shade_directions(scene: Scene, geometry: GeometryBuffers, light_dir: Tensor, irradiance: Tensor, lit: Tensor,
+                     albedo_scale: Tensor) -> Tensor:
+    """Stokes radiance of every pixel for light arriving from its own direction (spec §1, §8).
+
+    Args:
+        scene: the scene ``geometry`` was rasterised from (its objects' materials).
+        geometry: per-pixel buffers (H, W) (any 2-D batch: secondary hits too).
+        light_dir: (H, W, 3) unit directions surface → light.
+        irradiance: (H, W) irradiance at normal incidence from that direction.
+        lit: (H, W) bool, the pixels to shade (others are 0).
+        albedo_scale: (H, W) albedo multipliers.
+
+    Returns:
+        (3, H, W) (s0, s1, s2) in each pixel's Stokes frame.
+    """
     out = torch.zeros(*geometry.depth.shape, 3, dtype=geometry.points.dtype, device=geometry.points.device)  # (H, W, 3)
     for k, obj in enumerate(scene.objects):
         sel = lit & (geometry.object_index == k)  # (H, W)
