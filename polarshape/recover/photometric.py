@@ -783,14 +783,30 @@ def robust_lambertian_ps(
     )
     flat = _prepare(intensity, lights, light_intensity, mask, view_dirs)
     degenerate = _check_light_geometry(flat, max_condition, allow_degenerate)
-    k = flat.intensity.shape[0]
+    k, p = flat.intensity.shape
 
-    used = _select_lit(flat, opts)  # (K, P)
-    used, b, inv, cond = _trim_highlights(flat, used, opts)  # (K, P), (P, 3), (P, 3, 3), (P,)
-    inconsistent = _inconsistent(flat, used, b, inv, opts)  # (P,)
+    # Pixels without a single observation (the background of an image) have a known answer — N = V,
+    # albedo 0, no light used — so only the others are fitted (a 1024² image is ~30 % background).
+    index = flat.obs_mask.any(0).nonzero().squeeze(1)  # (A,)
+    sub = flat if index.numel() == p else _subset(flat, index)
+    used_a = _select_lit(sub, opts)  # (K, A)
+    used_a, b, inv, cond_a = _trim_highlights(sub, used_a, opts)  # (K, A), (A, 3), (A, 3, 3), (A,)
+    inconsistent_a = _inconsistent(sub, used_a, b, inv, opts)  # (A,)
+    normals_a, albedo_a, back_a = _normals_from_b(b, sub.view)
 
+    used = torch.zeros_like(flat.obs_mask)
+    used[:, index] = used_a
     n_used = used.sum(0)  # (P,)
-    normals, albedo, back = _normals_from_b(b, flat.view)
+    normals = flat.view.expand(p, 3).clone()
+    normals[index] = normals_a
+    albedo = torch.zeros(p, dtype=albedo_a.dtype, device=albedo_a.device)
+    albedo[index] = albedo_a
+    back = torch.zeros(p, dtype=torch.bool, device=used.device)
+    back[index] = back_a
+    inconsistent = torch.zeros_like(back)
+    inconsistent[index] = inconsistent_a
+    cond = torch.full((p,), math.inf, dtype=cond_a.dtype, device=cond_a.device)
+    cond[index] = cond_a
     cond = torch.where(n_used >= 3, cond, torch.full_like(cond, math.inf))
     code = (PSReason.TOO_FEW_LIGHTS if k < 3 else PSReason.ILL_CONDITIONED) if degenerate else None
     reason = _reasons(flat.pixel_mask, n_used, cond, back, inconsistent, max_condition, code)
