@@ -152,6 +152,33 @@ class IntegrationConfig(_Strict):
     max_iter: int = Field(100, ge=1, le=10000)
 
 
+class InterreflectionConfig(_Strict):
+    """``interreflection:``: light the object sends onto itself (concave objects), estimated from the
+    recovered surface and material and taken out of the photos before a re-fit
+    (:mod:`polarshape.surface.interreflection`)."""
+
+    mode: Literal["auto", "on", "off"] = Field(
+        "auto", description="auto: re-fit only when the estimated bounce is more than min_fraction of the light on "
+        "at least min_area of the object (a concavity); on: always; off: never"
+    )
+    iterations: int = Field(3, ge=1, le=10, description="estimate-and-re-fit rounds")
+    samples: int = Field(32, ge=4, le=1024, description="hemisphere rays per pixel")
+    max_pixels: int = Field(16384, ge=256, description="the bounce is rendered on a lattice of at most this many pixels")
+    albedo_scale: float | None = Field(
+        None, gt=0, description="the capture's albedo units per physical albedo (fraction of full scale per unit light "
+        "that a white Lambertian reflector of albedo 1 gives, from a reference target); null: fitted"
+    )
+    min_fraction: float = Field(0.02, ge=0.0, lt=1.0, description="auto: bounce / observed s0 that counts")
+    min_area: float = Field(0.01, ge=0.0, le=1.0, description="auto: share of the object where it must count")
+
+    @model_validator(mode="after")
+    def _on_needs_scale(self) -> InterreflectionConfig:
+        if self.mode == "on" and self.albedo_scale is None:
+            raise ValueError("mode: on takes the bounce out, which needs albedo_scale (the capture's albedo per physical "
+                             "albedo, from a white reference target); give it, or use mode: auto to mark the pixels")
+        return self
+
+
 class MeshConfig(_Strict):
     """Meshes from the depth map (grid) and, optionally, screened Poisson reconstruction."""
 
@@ -208,6 +235,7 @@ class RunConfig(_Strict):
     initial_normals: InitialNormalsOptions = InitialNormalsOptions()
     recovery: RecoveryOptions = RecoveryOptions()
     validation: ValidationOptions = ValidationOptions()
+    interreflection: InterreflectionConfig = InterreflectionConfig()
     integration: IntegrationConfig = IntegrationConfig()
     mesh: MeshConfig = MeshConfig()
     export: ExportConfig = ExportConfig()

@@ -27,6 +27,7 @@ __all__ = [
     "OutputExistsError",
     "OutputPathError",
     "OutputWriteError",
+    "InterreflectionWarning",
     "ParameterBoundWarning",
     "PipelineError",
     "PolarshapeError",
@@ -122,6 +123,13 @@ class ParameterBoundWarning(PolarshapeWarning):
     """A fitted material parameter sits at the edge of the range the solver searches (e.g. β at 6, k_s
     at 0): the fit pushed against its limits because the model cannot explain the data as given —
     usually wrong inputs (see :class:`FitResidualWarning`), sometimes a material outside the model."""
+
+
+class InterreflectionWarning(PolarshapeWarning):
+    """Part of the object sees itself (a concavity) and receives light it reflects onto itself, which a
+    fit of direct light explains by bending the normals there: give ``interreflection.albedo_scale``
+    (the capture's albedo units per physical albedo, from a white reference target) so that the bounce
+    is taken out, or read the marked pixels (``interreflection.npy``) with care."""
 
 
 class FilledPixelsWarning(PolarshapeWarning):

@@ -31,6 +31,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import logging
+import math
 import os
 import shutil
 import time
@@ -43,13 +44,14 @@ from typing import Any
 import numpy as np
 import scipy.ndimage
 import torch
+from torch import Tensor
 import yaml
 from tqdm import tqdm
 
 from polarshape import __version__
 from polarshape.cameras import Camera
 from polarshape.config import RunConfig
-from polarshape.errors import CaptureError, ConfigError, PipelineError, PolarshapeWarning, SelfCheckError
+from polarshape.errors import CaptureError, ConfigError, InterreflectionWarning, PipelineError, PolarshapeWarning, SelfCheckError
 from polarshape.io.export import write_npy
 from polarshape.io.material import load_material
 from polarshape.imaging.demosaic import stokes_from_mosaic
@@ -58,6 +60,7 @@ from polarshape.checks import resolve_device, to_numpy
 from polarshape.io.atomic import atomic_directory, atomic_write_text
 from polarshape.io.capture import Capture, load_capture, write_capture
 from polarshape.io.polarimetric import polarimetric_calibration_record
+from polarshape.surface.interreflection import estimate_one_bounce
 from polarshape.io.results import RESULT_FORMAT, output_refusal, write_maps, write_params
 from polarshape.metrics import angular_error_deg, angular_error_stats, depth_rmse_aligned
 from polarshape.normals import NormalsResult, recover_normals
@@ -77,7 +80,7 @@ __all__ = [
     "preprocess", "run_pipeline", "validate",
 ]
 
-STAGES: tuple[str, ...] = ("input", "preprocess", "recovery", "validation", "checks", "integration", "mesh", "export",
+STAGES: tuple[str, ...] = ("input", "preprocess", "recovery", "interreflection", "validation", "checks", "integration", "mesh", "export",
                            "evaluation", "report")
 
 
@@ -277,6 +280,81 @@ def integrate(result: NormalsResult, camera: Camera, config: RunConfig) -> Surfa
         report=report,
     )
     return Surface(depth, camera, report)
+
+
+def interreflection(inputs: RecoveryInputs, result: NormalsResult, camera: Camera, capture: Capture, config: RunConfig,
+                    log: _StageLog) -> tuple[RecoveryInputs, NormalsResult, dict[str, Any], Tensor | None]:
+    """Light the object sends onto itself (``interreflection:``): taken out and re-fitted, or marked.
+
+    The current normals are integrated and one bounce B off that surface is rendered with the current
+    material (:func:`polarshape.surface.interreflection.estimate_one_bounce`). The albedos are in the
+    capture's units — c times the physical ones, for an unknown c (exposure, gain, light power) — and
+    a bounce scales with the albedo twice, so the bounce in the photos is B / c:
+
+    - with ``albedo_scale`` (c, from a white reference target) the bounce B / c is subtracted from the
+      observed Stokes and the normals and material are recovered again, ``iterations`` times;
+    - without it c is not known (a fit of direct light absorbs the excess into normals and albedo, so
+      the residual does not reveal it): the pixels where the bounce could exceed ``min_fraction`` of
+      the light — with c at its physical lower bound, the brightest albedo white — are marked
+      (``interreflection.npy``) and, on more than ``min_area`` of the object, a named
+      :class:`InterreflectionWarning` says so.
+
+    ``auto`` stops after the first estimate when the bounce exceeds ``min_fraction`` of the light on less
+    than ``min_area`` of the object (a convex object sees nothing of itself); ``on`` always corrects
+    (needs ``albedo_scale``).
+
+    Returns:
+        the inputs the final result was fitted to, that result, the record for params.json
+        (``interreflection``) and the (H, W) map of the largest bounce fraction over the lights (None
+        when not estimated).
+    """
+    options = config.interreflection
+    record: dict[str, Any] = {"mode": options.mode, "applied": False, "albedo_scale": options.albedo_scale, "rounds": []}
+    if options.mode == "off":
+        log.skip("interreflection", "interreflection.mode: off")
+        return inputs, result, record, None
+    if result.model != "fmbrdf":
+        log.skip("interreflection", f"needs the FMBRDF material (the run's model is {result.model})")
+        return inputs, result, record, None
+    observed = inputs.stokes  # (K, 3, H, W)
+    usable = inputs.valid & inputs.mask.unsqueeze(0)  # (K, H, W)
+    fraction_map: Tensor | None = None
+    for round_index in range(options.iterations if options.albedo_scale is not None else 1):
+        surface = integrate(result, camera, config)
+        bounce = estimate_one_bounce(
+            result.normals, result.albedo, surface.depth, camera, inputs.view, capture.lights(), result.params,
+            samples=options.samples, max_pixels=options.max_pixels, seed=config.seed,
+        ).stokes.to(observed)  # (K, 3, H, W) with c = 1
+        if options.albedo_scale is not None:
+            scale = options.albedo_scale
+        else:  # c ≥ the brightest body albedo (no physical albedo above 1)
+            albedo = result.albedo[inputs.mask & torch.isfinite(result.albedo)]
+            scale = max(float(torch.quantile(albedo.double(), 0.99)), 1e-12) if albedo.numel() else math.inf
+        fraction = torch.where(usable, bounce[:, 0] / scale / observed[:, 0].clamp_min(1e-6), 0.0)  # (K, H, W)
+        fraction_map = fraction.amax(0)  # (H, W)
+        marked = (fraction_map > options.min_fraction) & inputs.mask
+        area = float(marked.sum()) / max(int(inputs.mask.sum()), 1)
+        record["rounds"].append({"albedo_scale": scale, "area": area, "max_fraction": float(fraction_map.max())})
+        if round_index == 0 and options.mode == "auto" and area < options.min_area:
+            log.skip("interreflection", f"no concavity: the bounce exceeds {options.min_fraction:.0%} of the light on "
+                     f"{area:.1%} of the object (< {options.min_area:.0%})")
+            return inputs, result, record, fraction_map
+        if options.albedo_scale is None:
+            record["marked_pixels"] = int(marked.sum())
+            warnings.warn(InterreflectionWarning(
+                f"{area:.0%} of the object sees itself and may receive up to {float(fraction_map.max()):.0%} of its "
+                "light from itself; the normals there may be bent: set interreflection.albedo_scale (the capture's "
+                "albedo per physical albedo, from a white reference) to take the bounce out (marked pixels: "
+                "interreflection.npy)"), stacklevel=2)
+            return inputs, result, record, fraction_map
+        inputs = dataclasses.replace(inputs, stokes=observed - bounce / scale)
+        result = recover_normals(inputs, config.recovery, config.initial_normals, seed=config.seed,
+                                 progress=config.progress)
+        record["applied"] = True
+    logger.info("interreflection: %d rounds with albedo scale %.4g; the bounce exceeded %.0f %% of the light on "
+                "%.1f %% of the object", options.iterations, options.albedo_scale, 100 * options.min_fraction,
+                100 * record["rounds"][-1]["area"])
+    return inputs, result, record, fraction_map
 
 
 def _mirror_closure(points: np.ndarray, normals: np.ndarray, colours: np.ndarray | None = None
@@ -701,6 +779,8 @@ def _run_stages(config: RunConfig, work: Path, out: Path, device: str, log: _Sta
                                  progress=config.progress)
         for item in result.skipped:
             log.skip("recovery", item)
+    with log.stage("interreflection"):
+        inputs, result, bounce_record, bounce_map = interreflection(inputs, result, camera, capture, config, log)
     with log.stage("validation"):
         result, validation = validate(inputs, result, config, log)
     with log.stage("checks"):
@@ -716,6 +796,8 @@ def _run_stages(config: RunConfig, work: Path, out: Path, device: str, log: _Sta
                                filled=None if result.filled is None else to_numpy(result.filled),
                                normal_convention=config.export.normal_convention, exr=config.export.exr):
             log.skip("export", item)
+        if bounce_map is not None:  # the largest share of each pixel's light that came off the object itself
+            write_npy(to_numpy(bounce_map).astype(np.float32), work / "interreflection.npy")
         atomic_write_text(work / "config.yaml", yaml.safe_dump(config.model_dump(mode="json"), sort_keys=False))
     with log.stage("evaluation"):
         metrics, error_map = evaluate(capture, result, surface, log)
@@ -723,6 +805,7 @@ def _run_stages(config: RunConfig, work: Path, out: Path, device: str, log: _Sta
             write_npy(error_map.astype(np.float32), work / "error_map.npy")
     params = _params(config, capture, inputs, result, surface, mesh_info, metrics, device, work, out)
     params["validation"] = validation.as_dict()
+    params["interreflection"] = bounce_record
     params["checks"] = checks.as_dict()
     params["summary"] = _summary_line(out, result, metrics, time.perf_counter() - t_start, params=params,
                                       has_polarisation=inputs.has_polarisation, warned=warned)
