@@ -71,6 +71,8 @@ class ReportData:
     Attributes:
         normals: (H, W, 3) camera-frame unit normals, NaN outside the mask.
         albedo: (H, W) albedo map or None.
+        albedo_rgb: (H, W, 3) body albedo per colour channel R, G, B (a colour capture) or None; the
+            albedo panel shows it in colour.
         mask: (H, W) bool.
         observed: (K, 3, H, W) observed Stokes (fraction of full scale).
         rendered: (K, 3, H, W) Stokes of the fitted model, or None.
@@ -107,6 +109,7 @@ class ReportData:
     holdout_observed: np.ndarray | None = None
     holdout_predicted: np.ndarray | None = None
     truth: dict[str, float] | None = None
+    albedo_rgb: np.ndarray | None = None
 
 
 # --- derived quantities ------------------------------------------------------------------------
@@ -286,6 +289,12 @@ def _panel_normals(ax: Axes, data: ReportData) -> None:
 
 def _panel_albedo(ax: Axes, data: ReportData) -> None:
     name = "body albedo k_b" if data.params.get("model") == "fmbrdf" else "albedo ρ"
+    if data.albedo_rgb is not None:
+        top = _upper(data.albedo_rgb, data.mask)
+        rgb = np.clip(np.nan_to_num(data.albedo_rgb) / top, 0.0, 1.0)
+        rgb[~data.mask] = 0.0
+        _image(ax, rgb, f"{name} R, G, B (one scale: 99 % of the mask → 1)", cmap=None, colorbar=False)
+        return
     if data.albedo is None:
         _note(ax, name, "no albedo map")
         return
