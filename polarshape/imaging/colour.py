@@ -43,6 +43,7 @@ __all__ = [
     "BAYER_PATTERNS",
     "COLOUR_NAMES",
     "BayerPattern",
+    "bayer_reach",
     "block_colours",
     "check_bayer",
     "colour_mosaic_from_stokes",
@@ -173,6 +174,32 @@ def colour_mosaic_from_stokes(stokes: Tensor, layout: MosaicLayout, bayer: str) 
     """
     layout = check_layout(layout)
     return mosaic_from_stokes(select_block_colour(stokes, bayer), layout)
+
+
+def bayer_reach(flags: Tensor, bayer: str) -> Tensor:
+    """Which colour estimates of :func:`colour_stokes_from_mosaic` were interpolated from a flagged block.
+
+    Args:
+        flags: (*, H, W) bool blocks (e.g. dark: background or shadow, whose colour would be
+            interpolated into their neighbours').
+        bayer: Bayer pattern of the block grid.
+
+    Returns:
+        (*, 3, H, W) bool: colour c at block p came from a flagged neighbour of colour c (a block's
+        own colour is measured, never interpolated: False).
+
+    Example:
+        >>> dark = torch.zeros(4, 4, dtype=torch.bool); dark[0, 0] = True   # a red block (RGGB)
+        >>> bayer_reach(dark, "RGGB")[0, :2, :2]
+        tensor([[False,  True],
+                [ True,  True]])
+    """
+    bayer = check_bayer(bayer)
+    *lead, h, w = flags.shape
+    masks = F.one_hot(block_colours(bayer, h, w, flags.device), 3).permute(2, 0, 1).to(torch.float32)  # (3, H, W)
+    flagged = masks * flags.reshape(-1, 1, h, w).to(torch.float32)  # (N, 3, H, W)
+    reach = F.conv2d(flagged, torch.ones(3, 1, 3, 3, device=flags.device), padding=1, groups=3) > 0
+    return (reach & ~masks.bool()).reshape(*lead, 3, h, w)
 
 
 def _bilinear_bayer(stokes: Tensor, bayer: str) -> Tensor:

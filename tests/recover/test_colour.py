@@ -21,7 +21,8 @@ from polarshape.normals import NormalsResult, recover_normals
 from polarshape.recover.colour import colour_albedo, colour_albedo_summary
 from polarshape.recover.observations import crop_inputs, downsample_inputs
 from polarshape.recover.options import RecoveryOptions
-from polarshape.recover.preprocess import preprocess_capture
+from polarshape.imaging.colour import bayer_reach
+from polarshape.recover.preprocess import combined_colour_stokes, preprocess_capture
 from polarshape.scene.config import parse_scene_config
 from polarshape.scene.materials import colour_albedo_factors
 from polarshape.scene.render import albedo_scale_map, shade_stokes
@@ -68,7 +69,11 @@ def test_preprocess_gives_per_channel_stokes_of_the_truth(colour: tuple[Simulate
     assert inputs.colour is not None and inputs.colour.bayer == "RGGB"
     k, (h, w) = inputs.num_lights, inputs.shape
     assert inputs.colour.stokes.shape == (k, 3, 3, h, w) and inputs.colour.valid.shape == (k, 3, h, w)
-    torch.testing.assert_close(inputs.stokes, inputs.colour.stokes.mean(1))  # the combined signal: channel mean
+    # the combined signal: the channel mean, at the silhouette over the channels not interpolated from outside
+    clean = ~bayer_reach(~inputs.mask, "RGGB")  # (3, H, W)
+    torch.testing.assert_close(inputs.stokes, combined_colour_stokes(inputs.colour.stokes, clean))
+    torch.testing.assert_close(inputs.stokes[..., clean.all(0)], inputs.colour.stokes.mean(1)[..., clean.all(0)])
+    assert bool((~clean).any()) and not bool(inputs.colour.valid.permute(1, 0, 2, 3)[:, :, ~clean.all(0)].all())
     truth = _true_channel_stokes(camera).to(torch.float64)
     # interior observations valid in every channel (the silhouette's blocks straddle the background)
     interior = torch.from_numpy(np.asarray(capture.mask))
@@ -128,7 +133,8 @@ def test_shared_normals_and_per_channel_albedo_against_mono() -> None:
     within 3 % of the truth (measured 0.1 %), and their mean the combined fit's k_b."""
     _, capture = _render(_scene("RGGB", 64))
     options = RecoveryOptions(model="fmbrdf", fit_kappa=False)
-    result = recover_normals(preprocess_capture(capture), options)
+    inputs = preprocess_capture(capture)
+    result = recover_normals(inputs, options)
     _, mono_capture = _render(_scene(None, 64))
     mono = recover_normals(preprocess_capture(mono_capture), options)
     assert mono.albedo_rgb is None
@@ -141,8 +147,8 @@ def test_shared_normals_and_per_channel_albedo_against_mono() -> None:
     chroma = colour_albedo_summary(rgb, result.mask)["chromaticity"]
     truth = [3 * v / sum(K_B_RGB) for v in K_B_RGB]
     assert all(abs(c - t) <= 0.03 * t for c, t in zip(chroma, truth)), (chroma, truth)
-    # linear in k_b: the channels' mean is the combined fit's albedo
-    m = result.mask
+    # linear in k_b: the channels' mean is the combined fit's albedo (where the combined signal is their mean)
+    m = result.mask & ~bayer_reach(~inputs.mask, "RGGB").any(0)
     torch.testing.assert_close(rgb[m].mean(-1), result.albedo[m].to(rgb.dtype), rtol=0.02, atol=1e-3)
     assert "colour" in result.timings
 
