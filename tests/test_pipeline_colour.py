@@ -89,7 +89,7 @@ def test_shipped_colour_config_runs(tmp_path: Path, capsys: pytest.CaptureFixtur
     assert main(["run", str(REPO / "configs" / "colour.yaml"), "--out", str(out), "-q"]) == 0
     params = json.loads((out / "params.json").read_text())
     assert params["model"] == "fmbrdf" and params["capture"]["bayer"] == "RGGB"
-    assert params["metrics"]["normals"]["mean_deg"] < 0.5, params["metrics"]["normals"]  # measured 0.27°
-    assert params["metrics"]["albedo_rgb"]["max_abs_chromaticity_error_pct"] < 3.0  # measured 0.1 %
+    assert params["metrics"]["normals"]["mean_deg"] < 0.4, params["metrics"]["normals"]  # measured 0.20°
+    assert params["metrics"]["albedo_rgb"]["max_abs_chromaticity_error_pct"] < 3.0  # measured 0.3 %
     assert np.load(out / "albedo.npy").shape == (64, 64, 3)
     assert "result in" in capsys.readouterr().out

@@ -128,9 +128,9 @@ def _mean_error(result: NormalsResult, capture: Capture) -> float:
 @pytest.mark.slow
 def test_shared_normals_and_per_channel_albedo_against_mono() -> None:
     """A colour sphere (k_b = [0.8, 0.45, 0.15], the shipped scene's 64² super-pixels): normals as
-    accurate as a mono capture of the same scene (measured 0.27° against 0.25°; at 32² 0.54° against
-    0.35°: two of the three channels are interpolated across blocks), the per-channel albedo ratios
-    within 3 % of the truth (measured 0.1 %), and their mean the combined fit's k_b."""
+    accurate as a mono capture of the same scene (measured 0.20° against 0.25°; at 32² 0.28° against
+    0.35°: ``python benchmarks/colour.py --sizes 32 64``), the per-channel albedo ratios within 3 % of
+    the truth (measured 0.3 %), and their mean the combined fit's k_b."""
     _, capture = _render(_scene("RGGB", 64))
     options = RecoveryOptions(model="fmbrdf", fit_kappa=False)
     inputs = preprocess_capture(capture)
