@@ -1004,6 +1004,18 @@ def _parameter_table(data: ReportData) -> str:
     return _table("Parameters", _parameter_rows(p, data.truth), header, note)
 
 
+def _colour_table(params: dict[str, Any]) -> str:
+    """A colour capture's body albedo per channel (params.json ``colour``); nothing for mono."""
+    colour = params.get("colour")
+    if not colour:
+        return ""
+    keys = ("median", "mean", "p05", "p95", "chromaticity")
+    rows = [(name, *(_fmt(colour[k][c]) for k in keys)) for c, name in enumerate(colour["channels"])]
+    return _table("Body albedo per colour channel", rows, ["channel", *keys],
+                  f"camera.mosaic.bayer {params.get('capture', {}).get('bayer')}; chromaticity: the channel's median "
+                  "over the mean of the three medians (the albedo's scale follows the irradiance units)")
+
+
 def _timing_table(params: dict[str, Any]) -> str:
     rows = [(k, f"{v:.3f}") for k, v in (params.get("timings_s") or {}).items() if _number(v) is not None]
     timings = params.get("timings_s") or {}
@@ -1048,6 +1060,7 @@ def _page(data: ReportData) -> str:
         _img(specs["models"], "Model comparison on the held-out lights"),
         _img(specs["holdout"], "Held-out lights: prediction vs photo"),
         _parameter_table(data),
+        _colour_table(p),
         _img(specs["polarisation"], "DoLP and AoLP"),
         _img(specs["fit_curves"], "Fit curves"),
         _img(specs["residuals"], "Residual maps"),

@@ -41,7 +41,7 @@ def _run(folder: Path, scene: Path, **sections: object) -> tuple[Path, dict]:
 @pytest.fixture(scope="module")
 def colour_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict]:
     folder = tmp_path_factory.mktemp("colour")
-    return _run(folder, _colour_scene(folder), recovery={"model": "lambertian"}, report={"format": "png"})
+    return _run(folder, _colour_scene(folder), recovery={"model": "lambertian"})
 
 
 def test_colour_result_files(colour_run: tuple[Path, dict]) -> None:
@@ -70,7 +70,8 @@ def test_colour_result_files(colour_run: tuple[Path, dict]) -> None:
     metrics = params["metrics"]["albedo_rgb"]
     assert metrics["max_abs_chromaticity_error_pct"] < 5.0, metrics
     assert "colour" in params["recovery_timings_s"]
-    assert (out / "report.png").is_file()
+    page = (out / "report.html").read_text(encoding="utf-8")
+    assert "Body albedo per colour channel" in page and (out / "report" / "maps.png").is_file()
 
 
 def test_mono_capture_keeps_its_grey_albedo(tmp_path: Path) -> None:

@@ -22,12 +22,12 @@ is taken (``sample_at``) and how (``demosaic``):
 - colour captures (``camera.mosaic.bayer``, Sony IMX250MYR / Lucid TRI050S-QC: each 2×2 polariser
   block behind one colour filter, a Bayer pattern over the blocks): each block's own colour by the
   plain 2×2 estimate, each site first moved to the block centre with its colour's gradient (the
-  super-pixel estimate's spurious s1, s2 under a gradient; measured on ``configs/scenes/colour.yaml``:
-  0.41° → 0.27° mean normal error), and the two other colours interpolated bilinearly from the
-  neighbouring blocks of those colours (:func:`colour_superpixel_stokes`), so every channel has a
-  Stokes vector at every block centre — the super-pixel grid, camera and geometry of a mono capture (``demosaic`` is not
-  used: a polariser image interpolated across blocks would mix colours; ``sample_at`` must be
-  ``"centre"``). ``stokes`` is then the channel mean (R + G + B) / 3
+  super-pixel estimate's spurious s1, s2 under a gradient; measured on ``configs/scenes/colour.yaml``
+  before the silhouette rule below: 0.41° → 0.27° mean normal error), and the two other colours
+  interpolated bilinearly from the neighbouring blocks of those colours
+  (:func:`colour_superpixel_stokes`), so every channel has a Stokes vector at every block centre —
+  the super-pixel grid, camera and geometry of a mono capture (``demosaic`` is not used: a
+  polariser image interpolated across blocks would mix colours; ``sample_at`` must be ``"centre"``). ``stokes`` is then the channel mean (R + G + B) / 3
   (:func:`combined_colour_stokes`): with white lights the surface term is the same in every
   channel and the body term is linear in k_b, so it is the mono model with k_b the mean of the
   channels' — what normal and material recovery consume; ``RecoveryInputs.colour`` keeps the
@@ -57,7 +57,8 @@ is taken (``sample_at``) and how (``demosaic``):
 
 Memory: the frames are converted and demosaiced one light at a time, so beyond the outputs
 preprocessing holds one frame's float64 intermediates (~0.35 GB at 2448 × 2048) and a few (K, H, W)
-float64 maps.
+float64 maps; a colour capture also keeps its (K, 3, 3, H, W) per-channel Stokes in ``dtype``
+(~0.36 GB at 2448 × 2048, K = 8, float32).
 """
 
 from __future__ import annotations
@@ -89,7 +90,8 @@ logger = logging.getLogger(__name__)
 
 __all__ = [
     "DEMOSAIC_CHOICES", "POLARISATION_SIGNAL_MIN", "SAMPLE_SITES", "RecoveryInputs", "capture_camera",
-    "colour_superpixel_stokes", "combined_colour_stokes", "mixed_superpixels", "polarisation_signal", "preprocess_capture", "superpixel_stokes",
+    "colour_superpixel_stokes", "combined_colour_stokes", "mixed_superpixels", "polarisation_signal",
+    "preprocess_capture", "superpixel_stokes",
 ]
 
 #: How the Stokes images are estimated from the mosaic.
@@ -249,7 +251,8 @@ def preprocess_capture(
             sites = split_mosaic(mosaic, capture.layout)
             colour_stokes[i] = cs  # sensor-plane angles: mapped to the pixel frames once combined (below)
             colour_dark[i] = cs[:, 0] < dark_threshold
-        stokes[i] = s if to_frames is None else sensor_plane_stokes(s, basis=to_frames)
+        if bayer is None:  # a colour capture's combined Stokes are made once the mask is known (below)
+            stokes[i] = s if to_frames is None else sensor_plane_stokes(s, basis=to_frames)
         block_s0[i] = sites.sum(-3) * 0.5  # the block's own s0 = ½ Σ of its four sites
         # colour: a block's own s0 is one colour's, the channel mean's s0 is what recovery sees
         dark[i] = (block_s0[i] if bayer is None else s[0]) < dark_threshold
