@@ -12,8 +12,9 @@ with configs/colour.yaml's settings (report off) on both, and prints one row per
 * k_b / k_s per channel (scale-free: the albedos' scale follows the irradiance units, k_s is shared)
   against the truth, and the largest per-channel error in %; a mono capture has one k_b, compared with
   the mean of the three (what a grey sensor sees under white light);
-* the seconds of the run and of its recovery stage, and colour / mono ratios of both, measured in
-  the same process one after the other.
+* the seconds of the run, of its recovery and preprocess stages and of the per-channel albedo
+  (``recovery_timings_s.colour``), and colour / mono ratios, measured in the same process one after
+  the other.
 """
 
 from __future__ import annotations
@@ -45,7 +46,7 @@ def _run(work: Path, n: int, bayer: str | None) -> dict:
     config.update(progress=False, report={"enabled": False})
     path = work / f"run_{name}.yaml"
     path.write_text(yaml.safe_dump(config))
-    result = run_pipeline(load_run_config(path), work / name)
+    result = run_pipeline(load_run_config(path), work / name, overwrite=True)
     params = json.loads((result.out_dir / "params.json").read_text())
     truth = np.array(scene["objects"][0]["material"]["k_b"], dtype=float) / scene["objects"][0]["material"]["k_s"]
     k_s = params["params"]["k_s"]
@@ -58,7 +59,8 @@ def _run(work: Path, n: int, bayer: str | None) -> dict:
     normals = params["metrics"]["normals"]
     return {"size": n, "sensor": bayer or "mono", "mean_deg": normals["mean_deg"], "median_deg": normals["median_deg"],
             "k_b_over_k_s": got.tolist(), "truth": truth.tolist(), "max_err_pct": float(np.abs(err).max()),
-            "seconds": params["timings_s"]["total"], "recovery_s": params["timings_s"]["recovery"]}
+            "seconds": params["timings_s"]["total"], "recovery_s": params["timings_s"]["recovery"],
+            "preprocess_s": params["timings_s"]["preprocess"], "colour_s": params["recovery_timings_s"].get("colour", 0.0)}
 
 
 def main() -> None:
@@ -70,16 +72,17 @@ def main() -> None:
         work = args.work or Path(tmp)
         work.mkdir(parents=True, exist_ok=True)
         print(f"{'size':>4} {'sensor':>6} {'mean°':>6} {'median°':>7} {'k_b/k_s (R, G, B | grey)':>26} "
-              f"{'max err %':>9} {'run s':>6} {'rec s':>6}")
+              f"{'max err %':>9} {'run s':>6} {'rec s':>6} {'pre s':>6} {'colour s':>8}")
         for n in args.sizes:
             rows = [_run(work, n, "RGGB"), _run(work, n, None)]
             for r in rows:
                 kb = ", ".join(f"{v:.3f}" for v in r["k_b_over_k_s"])
                 print(f"{r['size']:>4} {r['sensor']:>6} {r['mean_deg']:6.3f} {r['median_deg']:7.3f} {kb:>26} "
-                      f"{r['max_err_pct']:9.2f} {r['seconds']:6.1f} {r['recovery_s']:6.1f}")
+                      f"{r['max_err_pct']:9.2f} {r['seconds']:6.1f} {r['recovery_s']:6.1f} {r['preprocess_s']:6.2f} "
+                      f"{r['colour_s']:8.3f}")
             c, m = rows
             print(f"{n:>4} colour/mono: normal error ×{c['mean_deg'] / m['mean_deg']:.2f}, run time ×{c['seconds'] / m['seconds']:.2f}, "
-                  f"recovery time ×{c['recovery_s'] / m['recovery_s']:.2f}")
+                  f"recovery time ×{c['recovery_s'] / m['recovery_s']:.2f}, preprocess time ×{c['preprocess_s'] / m['preprocess_s']:.2f}")
 
 
 if __name__ == "__main__":
