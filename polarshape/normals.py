@@ -17,7 +17,9 @@ Steps (each timed in ``NormalsResult.timings``, each omission recorded in ``skip
    **Lambertian path** — the PS normals and albedo, pixels without data filled the same way,
    rendered with :func:`polarshape.brdf.baselines.lambertian_stokes`; both paths mark the filled
    pixels (``NormalsResult.filled``);
-5. **paste back** into the full super-pixel grid.
+5. **colour** (a colour capture, ``inputs.colour``) — the body albedo per channel R, G, B with the
+   normals and material of step 4 held (:func:`polarshape.recover.colour.colour_albedo`);
+6. **paste back** into the full super-pixel grid.
 
 :func:`recover_capture` runs :func:`polarshape.recover.preprocess.preprocess_capture` first (directional
 lights; point lights need surface points, see ``polarshape run``).
@@ -36,11 +38,13 @@ from torch import Tensor
 
 from polarshape.brdf.baselines import lambertian_stokes
 from polarshape.brdf.fmbrdf import build_tables
+from polarshape.brdf.params import FMBRDF_PARAM_NAMES, FMBRDFParams
 from polarshape.errors import CaptureError
 from polarshape.imaging.stokes import dolp
 from polarshape.io.capture import Capture
 from polarshape.io.material import load_material
 from polarshape.recover.coarse_to_fine import FMBRDFState, KnownMaterial, SolveLog, solve_fmbrdf
+from polarshape.recover.colour import colour_albedo
 from polarshape.recover.normal_solver import CHUNK_PIXELS
 from polarshape.recover.observations import RecoveryInputs, crop_inputs, flatten_observations, paste_crop
 from polarshape.recover.options import InitialNormalsOptions, RecoveryOptions
@@ -76,6 +80,8 @@ class NormalsResult:
             not their own but their neighbours' (both models; filled.png).
         counts: work of the material step (:class:`polarshape.recover.coarse_to_fine.SolveLog`:
             material_fits, material_fit_iterations, kappa_probes, albedo_solves).
+        albedo_rgb: (H, W, 3) body albedo per colour channel R, G, B of a colour capture (same units
+            as ``albedo``, their mean), NaN outside ``mask``; None for a mono capture.
     """
 
     normals: Tensor
@@ -92,6 +98,7 @@ class NormalsResult:
     skipped: list[str] = field(default_factory=list)
     filled: Tensor | None = None
     counts: dict[str, int] = field(default_factory=dict)
+    albedo_rgb: Tensor | None = None
 
 
 @dataclass(frozen=True)
@@ -246,6 +253,19 @@ def _fmbrdf_solution(inputs: RecoveryInputs, ps: RobustPSResult, options: Recove
     return _Solution(normals, k_b, rendered, state.params.as_dict(), filled)
 
 
+def _colour_albedo(inputs: RecoveryInputs, sol: _Solution, model: str, options: RecoveryOptions, log: SolveLog
+                   ) -> Tensor | None:
+    """(h, w, 3) albedo per colour channel of a colour capture, normals and material held; None for mono."""
+    if inputs.colour is None:
+        return None
+    t0 = time.perf_counter()
+    material = FMBRDFParams(**{k: sol.params[k] for k in FMBRDF_PARAM_NAMES}) if model == "fmbrdf" else None
+    rgb = colour_albedo(inputs, sol.normals, model, material, filled=sol.filled,
+                        per_pixel=options.per_pixel_albedo or model == "lambertian")
+    log.add_time("colour", t0)
+    return rgb
+
+
 def recover_normals(
     inputs: RecoveryInputs,
     options: RecoveryOptions = RecoveryOptions(),
@@ -284,6 +304,7 @@ def recover_normals(
         sol = _lambertian_solution(crop, ps, log)
     else:
         sol = _fmbrdf_solution(crop, ps, options, seed=seed, progress=progress, log=log)
+    albedo_rgb = _colour_albedo(crop, sol, model, options, log)
     log.timings["total"] = time.perf_counter() - log.t_start
     return NormalsResult(
         normals=paste_crop(sol.normals, crop, inputs, channels_last=True),
@@ -294,6 +315,7 @@ def recover_normals(
         initial_valid=paste_crop(ps.valid & crop.mask, crop, inputs, False),
         history=log.history, timings=log.timings, skipped=log.skipped,
         filled=None if sol.filled is None else paste_crop(sol.filled, crop, inputs, False), counts=dict(log.counts),
+        albedo_rgb=None if albedo_rgb is None else paste_crop(albedo_rgb, crop, inputs, channels_last=True),
     )
 
 

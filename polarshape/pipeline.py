@@ -17,7 +17,8 @@ params.json records both):
    warning (params.json's ``checks``; ``strict``: an error once the result is written);
 4. ``integration`` — :func:`integrate`: depth from the normals (:mod:`polarshape.surface.integrate`);
 5. ``mesh`` — :func:`build_meshes`: grid mesh of the depth map (and screened Poisson if asked);
-6. ``export`` — result files (:func:`polarshape.io.results.write_maps`);
+6. ``export`` — result files (:func:`polarshape.io.results.write_maps`; a colour capture's albedo.png
+   and albedo.npy are RGB, :func:`albedo_map`);
 7. ``evaluation`` — :func:`evaluate`: errors against the capture's ground truth, when it has some;
 8. ``report`` — report.html with PNG plots (or report.png).
 
@@ -66,7 +67,8 @@ from polarshape.metrics import angular_error_deg, angular_error_stats, depth_rms
 from polarshape.normals import NormalsResult, recover_normals
 from polarshape.recover.diagnose import dark_capture_cause
 from polarshape.recover.observations import RecoveryInputs
-from polarshape.recover.preprocess import capture_camera, preprocess_capture
+from polarshape.recover.colour import colour_albedo_summary
+from polarshape.recover.preprocess import capture_camera, colour_superpixel_stokes, preprocess_capture
 from polarshape.recover.selfcheck import run_self_checks
 from polarshape.recover.validation import Validation, model_evidence, validate_holdout
 from polarshape.report import ReportData, material_truth, rewrite_report_page, write_report
@@ -76,8 +78,8 @@ from polarshape.surface.mesh import FRAME_AXES, MESH_FRAMES, depth_to_mesh, mesh
 logger = logging.getLogger(__name__)
 
 __all__ = [
-    "STAGES", "PipelineError", "PipelineResult", "Surface", "acquire", "build_meshes", "evaluate", "integrate",
-    "preprocess", "run_pipeline", "validate",
+    "STAGES", "PipelineError", "PipelineResult", "Surface", "acquire", "albedo_map", "build_meshes", "evaluate",
+    "integrate", "preprocess", "run_pipeline", "validate",
 ]
 
 STAGES: tuple[str, ...] = ("input", "preprocess", "recovery", "interreflection", "validation", "checks", "integration", "mesh", "export",
@@ -172,9 +174,14 @@ def acquire(config: RunConfig, work: Path, device: str) -> Capture:
 
 
 def _threshold_mask(capture: Capture, threshold: float) -> np.ndarray:
-    """(H, W) bool: super-pixels whose brightest s0 over the lights exceeds ``threshold`` of full scale."""
+    """(H, W) bool: super-pixels whose brightest s0 over the lights exceeds ``threshold`` of full scale
+    (a colour capture: the channel mean's s0, not the block's own colour's)."""
     mosaic = counts_to_float(capture.frames, capture.bit_depth, capture.spec.camera.black_level)  # (K, 2H, 2W)
-    s0 = stokes_from_mosaic(mosaic, capture.layout, "superpixel")[:, 0]  # (K, H, W)
+    bayer = capture.spec.camera.mosaic.bayer
+    if bayer is None:
+        s0 = stokes_from_mosaic(mosaic, capture.layout, "superpixel")[:, 0]  # (K, H, W)
+    else:
+        s0 = colour_superpixel_stokes(mosaic, capture.layout, bayer)[1][:, 0]  # (K, H, W)
     return (s0.amax(0) > threshold).numpy()
 
 
@@ -375,6 +382,11 @@ def _mirror_closure(points: np.ndarray, normals: np.ndarray, colours: np.ndarray
     return np.concatenate([points, back]), np.concatenate([normals, back_normals]), both_colours
 
 
+def albedo_map(result: NormalsResult) -> np.ndarray:
+    """The albedo the result files show: (H, W, 3) R, G, B for a colour capture, else (H, W)."""
+    return to_numpy(result.albedo if result.albedo_rgb is None else result.albedo_rgb)
+
+
 def _vertex_colours(albedo: np.ndarray | None, surface: Surface, config: RunConfig, log: _StageLog) -> np.ndarray | None:
     """Albedo scaled to [0, 1] by its 99th percentile ((H, W) or (H, W, 3)), or None."""
     if config.mesh.colors != "albedo":
@@ -423,7 +435,7 @@ def build_meshes(work: Path, result: NormalsResult, surface: Surface, config: Ru
     ``mesh.frame`` with the units in their headers; returns params.json's ``mesh`` section (frame,
     units, sizes, open3d's checks of mesh_poisson.ply)."""
     normals = to_numpy(result.normals)
-    colours = _vertex_colours(to_numpy(result.albedo), surface, config, log)
+    colours = _vertex_colours(albedo_map(result), surface, config, log)
     frame = config.mesh.frame
     units, scale = _mesh_units(surface, log)
     mesh = depth_to_mesh(surface.depth, surface.mask, camera=surface.camera, normals=normals, colors=colours)
@@ -517,7 +529,31 @@ def evaluate(capture: Capture, result: NormalsResult, surface: Surface, log: _St
         metrics["depth"] = depth_rmse_aligned(surface.depth, gt_depth, surface.mask)
     else:
         log.skip("evaluation", "depth: the capture has no ground_truth/depth.npy at super-pixel size")
+    if result.albedo_rgb is not None:
+        colour = _colour_metrics(capture, result)
+        if colour is None:
+            log.skip("evaluation", "colour: the capture has no ground_truth/albedo_rgb.npy at super-pixel size")
+        else:
+            metrics["albedo_rgb"] = colour
     return metrics, error_map
+
+
+def _colour_metrics(capture: Capture, result: NormalsResult) -> dict[str, Any] | None:
+    """The recovered per-channel albedo against ground_truth/albedo_rgb.npy: the chromaticity (median
+    per channel over the mask divided by the mean of the medians; the albedo's scale depends on the
+    irradiance units) and its relative error per channel, in %; None without the truth."""
+    mask = to_numpy(result.mask)
+    truth = capture.ground_truth.get("albedo_rgb")
+    if not isinstance(truth, np.ndarray) or truth.shape != (*mask.shape, 3):
+        return None
+    ok = mask & np.isfinite(truth).all(-1)
+    got = colour_albedo_summary(to_numpy(result.albedo_rgb), ok)["chromaticity"]
+    want = colour_albedo_summary(truth, ok)["chromaticity"]
+    if None in got or None in want:
+        return None
+    error = [100.0 * (g - t) / t for g, t in zip(got, want)]
+    return {"chromaticity": got, "truth_chromaticity": want, "chromaticity_error_pct": error,
+            "max_abs_chromaticity_error_pct": max(abs(e) for e in error)}
 
 
 # --- params.json, report -----------------------------------------------------------------------
@@ -613,6 +649,12 @@ def _material_record(config: RunConfig, result: NormalsResult) -> dict[str, Any]
             "parameters": dict(material.parameters), "applied": result.model == "fmbrdf"}
 
 
+def _colour_capture_record(capture: Capture) -> dict[str, Any]:
+    """params.json's ``capture.bayer`` (``camera.mosaic.bayer``) for a colour capture; nothing for mono."""
+    bayer = capture.spec.camera.mosaic.bayer
+    return {} if bayer is None else {"bayer": bayer}
+
+
 def _params(config: RunConfig, capture: Capture, inputs: RecoveryInputs, result: NormalsResult, surface: Surface,
             mesh_info: dict[str, Any], metrics: dict[str, Any], device: str, work: Path, out: Path) -> dict[str, Any]:
     """The content of params.json (format :data:`polarshape.io.results.RESULT_FORMAT`)."""
@@ -639,7 +681,9 @@ def _params(config: RunConfig, capture: Capture, inputs: RecoveryInputs, result:
             "filled_pixels": None if result.filled is None else int(result.filled.sum()),
             "has_polarisation": bool(inputs.has_polarisation),
             "polarimetric_calibration": polarimetric_calibration_record(capture),
+            **_colour_capture_record(capture),
         },
+        **({} if result.albedo_rgb is None else {"colour": colour_albedo_summary(result.albedo_rgb, result.mask)}),
         "integration": {
             "method": config.integration.method, "pixel_size_m": pixel_size, "solver": surface.report.solver,
             "components": surface.report.components, "iterations": surface.report.iterations,
@@ -661,6 +705,7 @@ def _report(work: Path, config: RunConfig, inputs: RecoveryInputs, result: Norma
         return None
     data = ReportData(
         normals=to_numpy(result.normals), albedo=to_numpy(result.albedo), mask=to_numpy(result.mask),
+        albedo_rgb=None if result.albedo_rgb is None else to_numpy(result.albedo_rgb),
         observed=to_numpy(result.observed), rendered=to_numpy(result.rendered), lights=to_numpy(inputs.lights),
         irradiance=to_numpy(inputs.irradiance), view=to_numpy(inputs.view), valid=to_numpy(inputs.valid),
         params=params, error_map=error_map, seed=config.seed, max_curve_pixels=config.report.max_curve_pixels,
@@ -792,7 +837,7 @@ def _run_stages(config: RunConfig, work: Path, out: Path, device: str, log: _Sta
         mesh_info = build_meshes(work, result, surface, config, log)
     with log.stage("export"):
         for item in write_maps(work, normals=to_numpy(result.normals), mask=to_numpy(result.mask),
-                               depth=surface.depth, albedo=to_numpy(result.albedo),
+                               depth=surface.depth, albedo=albedo_map(result),
                                filled=None if result.filled is None else to_numpy(result.filled),
                                normal_convention=config.export.normal_convention, exr=config.export.exr):
             log.skip("export", item)

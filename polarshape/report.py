@@ -71,6 +71,8 @@ class ReportData:
     Attributes:
         normals: (H, W, 3) camera-frame unit normals, NaN outside the mask.
         albedo: (H, W) albedo map or None.
+        albedo_rgb: (H, W, 3) body albedo per colour channel R, G, B (a colour capture) or None; the
+            albedo panel shows it in colour.
         mask: (H, W) bool.
         observed: (K, 3, H, W) observed Stokes (fraction of full scale).
         rendered: (K, 3, H, W) Stokes of the fitted model, or None.
@@ -107,6 +109,7 @@ class ReportData:
     holdout_observed: np.ndarray | None = None
     holdout_predicted: np.ndarray | None = None
     truth: dict[str, float] | None = None
+    albedo_rgb: np.ndarray | None = None
 
 
 # --- derived quantities ------------------------------------------------------------------------
@@ -286,6 +289,12 @@ def _panel_normals(ax: Axes, data: ReportData) -> None:
 
 def _panel_albedo(ax: Axes, data: ReportData) -> None:
     name = "body albedo k_b" if data.params.get("model") == "fmbrdf" else "albedo ρ"
+    if data.albedo_rgb is not None:
+        top = _upper(data.albedo_rgb, data.mask)
+        rgb = np.clip(np.nan_to_num(data.albedo_rgb) / top, 0.0, 1.0)
+        rgb[~data.mask] = 0.0
+        _image(ax, rgb, f"{name} R, G, B (one scale: 99 % of the mask → 1)", cmap=None, colorbar=False)
+        return
     if data.albedo is None:
         _note(ax, name, "no albedo map")
         return
@@ -995,6 +1004,18 @@ def _parameter_table(data: ReportData) -> str:
     return _table("Parameters", _parameter_rows(p, data.truth), header, note)
 
 
+def _colour_table(params: dict[str, Any]) -> str:
+    """A colour capture's body albedo per channel (params.json ``colour``); nothing for mono."""
+    colour = params.get("colour")
+    if not colour:
+        return ""
+    keys = ("median", "mean", "p05", "p95", "chromaticity")
+    rows = [(name, *(_fmt(colour[k][c]) for k in keys)) for c, name in enumerate(colour["channels"])]
+    return _table("Body albedo per colour channel", rows, ["channel", *keys],
+                  f"camera.mosaic.bayer {params.get('capture', {}).get('bayer')}; chromaticity: the channel's median "
+                  "over the mean of the three medians (the albedo's scale follows the irradiance units)")
+
+
 def _timing_table(params: dict[str, Any]) -> str:
     rows = [(k, f"{v:.3f}") for k, v in (params.get("timings_s") or {}).items() if _number(v) is not None]
     timings = params.get("timings_s") or {}
@@ -1039,6 +1060,7 @@ def _page(data: ReportData) -> str:
         _img(specs["models"], "Model comparison on the held-out lights"),
         _img(specs["holdout"], "Held-out lights: prediction vs photo"),
         _parameter_table(data),
+        _colour_table(p),
         _img(specs["polarisation"], "DoLP and AoLP"),
         _img(specs["fit_curves"], "Fit curves"),
         _img(specs["residuals"], "Residual maps"),

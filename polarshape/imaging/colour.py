@@ -37,12 +37,13 @@ from polarshape.imaging.mosaic import (
     mosaic_from_stokes,
     split_mosaic,
 )
-from polarshape.imaging.stokes import stokes_from_intensities
+from polarshape.imaging.stokes import intensities_from_stokes, stokes_from_intensities
 
 __all__ = [
     "BAYER_PATTERNS",
     "COLOUR_NAMES",
     "BayerPattern",
+    "bayer_reach",
     "block_colours",
     "check_bayer",
     "colour_mosaic_from_stokes",
@@ -175,6 +176,32 @@ def colour_mosaic_from_stokes(stokes: Tensor, layout: MosaicLayout, bayer: str) 
     return mosaic_from_stokes(select_block_colour(stokes, bayer), layout)
 
 
+def bayer_reach(flags: Tensor, bayer: str) -> Tensor:
+    """Which colour estimates of :func:`colour_stokes_from_mosaic` were interpolated from a flagged block.
+
+    Args:
+        flags: (*, H, W) bool blocks (e.g. dark: background or shadow, whose colour would be
+            interpolated into their neighbours').
+        bayer: Bayer pattern of the block grid.
+
+    Returns:
+        (*, 3, H, W) bool: colour c at block p came from a flagged neighbour of colour c (a block's
+        own colour is measured, never interpolated: False).
+
+    Example:
+        >>> dark = torch.zeros(4, 4, dtype=torch.bool); dark[0, 0] = True   # a red block (RGGB)
+        >>> bayer_reach(dark, "RGGB")[0, :2, :2]
+        tensor([[False,  True],
+                [ True,  True]])
+    """
+    bayer = check_bayer(bayer)
+    *lead, h, w = flags.shape
+    masks = F.one_hot(block_colours(bayer, h, w, flags.device), 3).permute(2, 0, 1).to(torch.float32)  # (3, H, W)
+    flagged = masks * flags.reshape(-1, 1, h, w).to(torch.float32)  # (N, 3, H, W)
+    reach = F.conv2d(flagged, torch.ones(3, 1, 3, 3, device=flags.device), padding=1, groups=3) > 0
+    return (reach & ~masks.bool()).reshape(*lead, 3, h, w)
+
+
 def _bilinear_bayer(stokes: Tensor, bayer: str) -> Tensor:
     """(N, 3, H, W) block Stokes (each block its own colour) -> (N, 3 colours, 3 Stokes, H, W).
 
@@ -195,7 +222,29 @@ def _bilinear_bayer(stokes: Tensor, bayer: str) -> Tensor:
     return torch.where(measured, stokes[:, None], interpolated)
 
 
-def colour_stokes_from_mosaic(mosaic: Tensor, layout: MosaicLayout, bayer: str) -> Tensor:
+def _site_corrected(block_stokes: Tensor, colour_stokes: Tensor, layout: MosaicLayout, bayer: str,
+                    angles: Tensor) -> Tensor:
+    """Block Stokes (N, 3, H, W) with each site's intensity moved to the block centre, to first order.
+
+    The four sites of a block lie ±½ pixel (±¼ block) from its centre, so under an intensity
+    gradient the plain 2×2 estimate sees a spurious s1, s2 (the mono pipeline's reason for its
+    bilinear demosaic). Here each site's I_θ is moved to the centre with the gradient of I_θ of the
+    block's own colour, ∇I_θ = ½(∇s0 + cos 2θ ∇s1 + sin 2θ ∇s2), taken by central differences of
+    that colour's interpolated Stokes field ``colour_stokes`` (N, 3, 3, H, W) on the block grid
+    (one-sided at the borders): I_θ(centre) = I_θ(site) − (site − centre) · ∇I_θ.
+    """
+    grad_y, grad_x = torch.gradient(colour_stokes, dim=(-2, -1))  # per block, (N, 3, 3, H, W) each
+    own_y, own_x = select_block_colour(grad_y, bayer), select_block_colour(grad_x, bayer)  # (N, 3, H, W)
+    di_y = intensities_from_stokes(own_y, angles)  # (N, 4, H, W): ∂I_θ/∂row per block
+    di_x = intensities_from_stokes(own_x, angles)
+    sites = torch.tensor([layout.site_of_channel(c) for c in range(4)], dtype=block_stokes.dtype,
+                         device=block_stokes.device)  # (4, 2) row, column parity
+    offset = (sites - 0.5) / 2.0  # (4, 2) site − centre, in blocks (a pixel is ½ block)
+    shift = offset[:, 0, None, None] * di_y + offset[:, 1, None, None] * di_x  # (N, 4, H, W)
+    return block_stokes - stokes_from_intensities(shift, angles)
+
+
+def colour_stokes_from_mosaic(mosaic: Tensor, layout: MosaicLayout, bayer: str, *, centre_sites: bool = False) -> Tensor:
     """Per-colour Stokes images from a raw colour polarisation mosaic (IMX250MYR-style).
 
     Each 2×2 block gives its own colour's Stokes vector by the plain super-pixel estimate
@@ -204,12 +253,19 @@ def colour_stokes_from_mosaic(mosaic: Tensor, layout: MosaicLayout, bayer: str) 
     grid, per Stokes component (at the borders, from the neighbours that exist). Exact for
     spatially constant per-colour Stokes fields.
 
+    ``centre_sites``: first move each site's intensity to its block's centre with the gradient of
+    its colour's interpolated field, then interpolate again (:func:`_site_corrected`): exact in the
+    interior for per-colour Stokes fields linear in the pixel position (the plain estimate sees a
+    spurious s1, s2 there, half a pixel times the gradient), at the cost of a second interpolation.
+    What :func:`polarshape.recover.preprocess.colour_superpixel_stokes` uses.
+
     Args:
         mosaic: (*, 2H, 2W) raw mosaic, floating point (e.g. fraction of full scale); H, W >= 2
             (every colour must occur).
         layout: polariser layout of each block as stored (our convention; for an ROI with even
             offsets the polariser layout is unchanged and the Bayer pattern is :func:`shifted_bayer`).
         bayer: Bayer pattern of the block grid (:data:`BAYER_PATTERNS`; IMX250MYR: ``"RGGB"``).
+        centre_sites: correct each site to its block's centre to first order (above).
 
     Returns:
         (*, 3, 3, H, W): colour (R, G, B), Stokes (s0, s1, s2), super-pixel rows, columns; same
@@ -235,4 +291,6 @@ def colour_stokes_from_mosaic(mosaic: Tensor, layout: MosaicLayout, bayer: str) 
     angles = channel_angles_rad(device=m.device, dtype=m.dtype)
     block_stokes = stokes_from_intensities(split_mosaic(m, layout), angles)  # (N, 3, H, W)
     out = _bilinear_bayer(block_stokes, bayer)  # (N, 3, 3, H, W)
+    if centre_sites:
+        out = _bilinear_bayer(_site_corrected(block_stokes, out, layout, bayer, angles), bayer)
     return out.to(mosaic.dtype).reshape(*batch, 3, 3, hh // 2, ww // 2)

@@ -3,7 +3,8 @@
 Files (spec capture-format.md, README "Result folder"): ``normals.npy`` (H, W, 3) float32 camera-frame
 unit normals, NaN outside the mask; ``normal_map.png`` (16-bit RGBA, alpha 0 outside the mask,
 convention in params.json); ``normals.exr`` (float32 R, G, B = normal, A = mask); ``albedo.npy`` /
-``albedo.png``; ``depth.npy``; ``mask.png``; ``filled.png``;
+``albedo.png`` ((H, W), 16-bit grey; a colour capture's (H, W, 3), 16-bit RGB: R, G, B body albedo,
+one linear scale for the three channels, 65535 = the 99.5th percentile of all their values); ``depth.npy``; ``mask.png``; ``filled.png``;
 ``config.yaml``; ``params.json`` (format :data:`RESULT_FORMAT`, with the polarshape version).
 Meshes and the report are written by their own stages into the same (temporary) folder.
 """
@@ -37,7 +38,8 @@ def write_maps(
 
     Args:
         normals: (H, W, 3) float normals, NaN outside the mask. mask: (H, W) bool.
-        depth: (H, W) camera-frame z, NaN outside. albedo: (H, W) or None. filled: (H, W) bool or None.
+        depth: (H, W) camera-frame z, NaN outside. albedo: (H, W), (H, W, 3) R, G, B (a colour capture;
+        one scale for the three channels) or None. filled: (H, W) bool or None.
         normal_convention: ``opencv`` or ``opengl`` (normal_map.png, 16-bit RGBA, alpha 0 outside the
         mask). exr: also write normals.exr (RGBA: A = 1 inside the mask, 0 outside).
     """

@@ -4,6 +4,8 @@
   :func:`polarshape.recover.preprocess.preprocess_capture`; light directions and irradiance are
   always per pixel, (K, H, W, 3) and (K, H, W), for directional and point lights alike (what
   :meth:`polarshape.lights.Lights.illuminate` returns), so no solver tests the light type.
+- :class:`ColourInputs` — a colour polarisation capture's per-channel Stokes and validity
+  (``RecoveryInputs.colour``; :mod:`polarshape.recover.colour` solves its per-channel albedo);
 - :class:`Observations` — the same data flattened to the P pixels being solved, pixel first.
 - :func:`flatten_observations`, :func:`downsample_inputs` (the coarse-to-fine pyramid),
   :func:`crop_inputs` / :func:`paste_crop` (solve on the mask's bounding box, then put it back).
@@ -20,7 +22,29 @@ from torch import Tensor
 
 from polarshape.recover.noise import NoiseModel
 
-__all__ = ["Observations", "RecoveryInputs", "crop_inputs", "downsample_inputs", "flatten_observations", "paste_crop"]
+__all__ = ["ColourInputs", "Observations", "RecoveryInputs", "crop_inputs", "downsample_inputs", "flatten_observations", "paste_crop"]
+
+
+@dataclass(frozen=True)
+class ColourInputs:
+    """Per-channel observations of a colour polarisation capture (camera.mosaic.bayer), on the
+    super-pixel grid of the :class:`RecoveryInputs` that hold them.
+
+    Attributes:
+        stokes: (K, 3, 3, H, W) Stokes per colour channel (R, G, B; s0, s1, s2), pixel frames,
+            fraction of full scale (:func:`polarshape.imaging.colour.colour_stokes_from_mosaic`).
+        valid: (K, 3, H, W) bool usable observations of each channel (the combined observation
+            valid and the channel itself not dark).
+        bayer: the Bayer pattern of the block grid as stored (``camera.mosaic.bayer``).
+    """
+
+    stokes: Tensor
+    valid: Tensor
+    bayer: str
+
+    def crop(self, rows: slice, cols: slice) -> ColourInputs:
+        """The same observations on the sub-grid ``rows``, ``cols``."""
+        return ColourInputs(self.stokes[..., rows, cols], self.valid[..., rows, cols], self.bayer)
 
 
 @dataclass(frozen=True)
@@ -45,6 +69,9 @@ class RecoveryInputs:
         offset: (row, column) of this grid's pixel (0, 0) in the full super-pixel grid (crops).
         noise: σ of an observed s0 as a function of the signal, measured from the capture's four-site
             redundancy (:func:`polarshape.recover.noise.estimate_noise`); None when not estimated.
+        colour: a colour capture's per-channel observations (``stokes`` is then their channel
+            mean); None for a mono capture. :func:`crop_inputs` crops it; :func:`downsample_inputs`
+            and light subsets leave it out (None).
     """
 
     stokes: Tensor
@@ -58,6 +85,7 @@ class RecoveryInputs:
     has_polarisation: bool
     offset: tuple[int, int] = (0, 0)
     noise: NoiseModel | None = None
+    colour: ColourInputs | None = None
 
     @property
     def num_lights(self) -> int:
@@ -168,6 +196,7 @@ def crop_inputs(inputs: RecoveryInputs, margin: int = 0) -> RecoveryInputs:
         irradiance=inputs.irradiance[:, r0:r1, c0:c1],
         view=inputs.view[r0:r1, c0:c1],
         offset=(inputs.offset[0] + r0, inputs.offset[1] + c0),
+        colour=None if inputs.colour is None else inputs.colour.crop(slice(r0, r1), slice(c0, c1)),
     )
 
 

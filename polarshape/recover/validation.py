@@ -142,7 +142,7 @@ def select_input_lights(inputs: RecoveryInputs, index: list[int]) -> RecoveryInp
     or its held-out frames)."""
     idx = torch.as_tensor(index, dtype=torch.long, device=inputs.stokes.device)
     return replace(inputs, stokes=inputs.stokes[idx], valid=inputs.valid[idx], saturated=inputs.saturated[idx],
-                   lights=inputs.lights[idx], irradiance=inputs.irradiance[idx])
+                   lights=inputs.lights[idx], irradiance=inputs.irradiance[idx], colour=None)
 
 
 @dataclass
@@ -469,7 +469,7 @@ def _lattice(crop: RecoveryInputs, max_pixels: int) -> tuple[RecoveryInputs, int
     return replace(crop, stokes=crop.stokes[(..., *sl)], valid=crop.valid[(slice(None), *sl)],
                    saturated=crop.saturated[(slice(None), *sl)], mask=crop.mask[sl],
                    lights=crop.lights[(slice(None), *sl)],
-                   irradiance=crop.irradiance[(slice(None), *sl)], view=crop.view[sl]), stride
+                   irradiance=crop.irradiance[(slice(None), *sl)], view=crop.view[sl], colour=None), stride
 
 
 def _paste(part: Tensor, crop: RecoveryInputs, stride: int, full: RecoveryInputs) -> Tensor:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import itertools
+import math
 
 import pytest
 import torch
@@ -102,6 +103,35 @@ def test_linear_ramps_exact_in_the_interior() -> None:
     field = torch.stack([torch.stack([1 + 0.1 * c + 0.05 * y, 0.01 * x - 0.02 * y, 0.03 * x]) for c in range(3)])
     out = colour_stokes_from_mosaic(colour_mosaic_from_stokes(field, IMX, "GBRG"), IMX, "GBRG")
     torch.testing.assert_close(out[..., 1:-1, 1:-1], field[..., 1:-1, 1:-1], atol=1e-12, rtol=0)
+
+
+@pytest.mark.parametrize("bayer", BAYER_PATTERNS)
+@pytest.mark.parametrize("layout", LAYOUTS, ids=str)
+def test_centre_sites_exact_for_fields_linear_in_the_pixel_position(bayer: str, layout: MosaicLayout) -> None:
+    """Each pixel sees its own colour's Stokes at its own position (not its block's centre): the
+    plain block estimate is off by half a pixel times the gradient, the centred one is exact in the
+    interior (three blocks from the border: the border's one-sided interpolation reaches the gradient
+    of the next block, which the second interpolation spreads one block further)."""
+    h, w = 10, 12
+    y, x = torch.meshgrid(torch.arange(2 * h, dtype=torch.float64), torch.arange(2 * w, dtype=torch.float64), indexing="ij")
+    def field(yy: torch.Tensor, xx: torch.Tensor) -> torch.Tensor:  # (3 colours, 3, ...)
+        return torch.stack([torch.stack([1 + 0.1 * c + 0.05 * yy - 0.03 * xx, 0.02 * xx - 0.01 * c * yy,
+                                         0.015 * yy + 0.01 * xx]) for c in range(3)])
+    per_pixel = field(y, x)  # (3, 3, 2H, 2W)
+    colour = pixel_colours(bayer, 2 * h, 2 * w)  # (2H, 2W)
+    own = per_pixel.gather(0, colour.expand(1, 3, 2 * h, 2 * w)).squeeze(0)  # (3, 2H, 2W)
+    angle = torch.zeros(2 * h, 2 * w, dtype=torch.float64)
+    for i in range(2):
+        for j in range(2):
+            angle[i::2, j::2] = math.radians(layout.angles_deg[i][j])
+    mosaic = 0.5 * (own[0] + own[1] * torch.cos(2 * angle) + own[2] * torch.sin(2 * angle))
+    cy, cx = torch.meshgrid(torch.arange(h, dtype=torch.float64) * 2 + 0.5, torch.arange(w, dtype=torch.float64) * 2 + 0.5,
+                            indexing="ij")
+    truth = field(cy, cx)[..., 3:-3, 3:-3]  # at the block centres
+    centred = colour_stokes_from_mosaic(mosaic, layout, bayer, centre_sites=True)[..., 3:-3, 3:-3]
+    torch.testing.assert_close(centred, truth, atol=1e-12, rtol=0)
+    plain = colour_stokes_from_mosaic(mosaic, layout, bayer)[..., 3:-3, 3:-3]
+    assert float((plain - truth).abs().max()) > 1e-3
 
 
 @pytest.mark.parametrize("bayer", BAYER_PATTERNS)
