@@ -46,7 +46,7 @@ from matplotlib.image import AxesImage
 
 from polarshape.brdf.params import FMBRDF_PARAM_NAMES, FMBRDFParams
 from polarshape.checks import to_numpy
-from polarshape.imaging.pixels import bit_depth_of, max_count
+from polarshape.imaging.pixels import bit_depth_of
 from polarshape.imaging.stokes import aolp, dolp
 from polarshape.io.atomic import atomic_path, atomic_write_text
 from polarshape.io.material import MATERIAL_UNITS, MaterialError, load_material
@@ -700,8 +700,7 @@ def _radiance_to_full_scale(provenance: dict[str, Any], scene: dict[str, Any]) -
         bits = bit_depth_of(str(camera.get("pixel_format", "PolarizeMono12")))
         exposure = float(provenance.get("exposure_us", camera.get("exposure_us", sensor.reference_exposure_us)))
         gain = float(provenance.get("gain_db", camera.get("gain_db", 0.0)))
-        electrons = sensor.electrons_per_radiance * exposure / sensor.reference_exposure_us
-        return electrons / sensor.e_per_count(bits, gain) / (max_count(bits) - sensor.black_level(bits))
+        return sensor.full_scale_per_radiance(exposure, gain, bits)
     except (TypeError, ValueError, KeyError):
         return None
 

@@ -14,8 +14,9 @@ from polarshape.pipeline import run_pipeline
 from polarshape.scene.config import load_scene_config
 
 REPO = Path(__file__).resolve().parents[1]
-#: electrons_per_radiance / full well of configs/scenes/crater.yaml: the capture's albedo per physical albedo
-ALBEDO_SCALE = 80000.0 / 10500.0
+_CRATER = load_scene_config(REPO / "configs" / "scenes" / "crater.yaml")
+#: the capture's albedo per physical albedo (what a white reference target would measure)
+ALBEDO_SCALE = _CRATER.sensor.to_model().full_scale_per_radiance(_CRATER.camera.exposure_us, _CRATER.camera.gain_db)
 
 
 def _crater(tmp_path: Path) -> Path:

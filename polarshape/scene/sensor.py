@@ -86,6 +86,16 @@ class SensorModel:
         check_bit_depth(bit_depth)
         return self.black_level_12bit * 2.0 ** (bit_depth - 12)
 
+    def full_scale_per_radiance(self, exposure_us: float, gain_db: float = 0.0, bit_depth: int = 12) -> float:
+        """Fraction of full scale (above the black level) that radiance 1 gives at this exposure and gain:
+        electrons per radiance × exposure / (electrons per count × (top count − black level)).
+
+        It is the capture's albedo units per physical albedo — what a white reference target of albedo 1
+        would measure (``interreflection.albedo_scale``; the "true" albedos of the report).
+        """
+        electrons = self.electrons_per_radiance * exposure_us / self.reference_exposure_us
+        return electrons / self.e_per_count(bit_depth, gain_db) / (max_count(bit_depth) - self.black_level(bit_depth))
+
     def mean_electrons(self, radiance: Tensor, exposure_us: float) -> Tensor:
         """Expected electrons (…) for radiance (…) during ``exposure_us``."""
         if not exposure_us > 0:
