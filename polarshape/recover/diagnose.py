@@ -319,7 +319,7 @@ def _box_mean(x: Tensor, weight: Tensor, size: int) -> Tensor:
     return num / den.clamp_min(1e-12)
 
 
-def polarisation_dolp(capture: Capture, valid: Tensor) -> tuple[float, int]:
+def polarisation_dolp(capture: Capture, valid: Tensor, stokes: Tensor | None = None) -> tuple[float, int]:
     """How polarised the frames are: the :data:`POLARISATION_PERCENTILE` percentile of the DoLP of
     bilinear-demosaiced Stokes vectors averaged over :data:`POLARISATION_WINDOW`² windows of the
     usable, lit observations (module docstring).
@@ -327,6 +327,9 @@ def polarisation_dolp(capture: Capture, valid: Tensor) -> tuple[float, int]:
     Args:
         capture: frames (K, 2H, 2W) counts, capture.yaml (bit depth, black level, mosaic).
         valid: (K, H, W) bool usable observations (preprocessing's ``valid``).
+        stokes: (K, 3, H, W) those Stokes vectors when already at hand (preprocessing's with
+            ``demosaic: bilinear`` at the block centres, in any per-pixel frames: the DoLP does not
+            depend on the frame); None = demosaiced here from the frames.
 
     Returns:
         (DoLP percentile, number of observations it is taken over); (0.0, 0) without observations.
@@ -347,31 +350,36 @@ def polarisation_dolp(capture: Capture, valid: Tensor) -> tuple[float, int]:
         v = valid[i, r0:r1, c0:c1]  # (h, w)
         if not bool(v.any()):
             continue
-        raw = capture.frames[i, 2 * r0:2 * r1, 2 * c0:2 * c1]  # (2h, 2w): whole blocks, the layout unchanged
-        # float32: the DoLP is compared with 0.01, far above float32 rounding
-        mosaic = counts_to_float(raw, camera.bit_depth, camera.black_level, dtype=torch.float32)
-        full = stokes_from_mosaic(mosaic, layout, "bilinear")  # (3, 2h, 2w); exact on linear fields
-        stokes = F.avg_pool2d(full.unsqueeze(0), 2)[0]  # (3, h, w) at the block centres
-        s0 = stokes[0]
+        if stokes is None:
+            raw = capture.frames[i, 2 * r0:2 * r1, 2 * c0:2 * c1]  # (2h, 2w): whole blocks, the layout unchanged
+            # float32: the DoLP is compared with 0.01, far above float32 rounding
+            mosaic = counts_to_float(raw, camera.bit_depth, camera.black_level, dtype=torch.float32)
+            full = stokes_from_mosaic(mosaic, layout, "bilinear")  # (3, 2h, 2w); exact on linear fields
+            frame = F.avg_pool2d(full.unsqueeze(0), 2)[0]  # (3, h, w) at the block centres
+            del mosaic, full
+        else:
+            frame = stokes[i, :, r0:r1, c0:c1].to(device="cpu", dtype=torch.float32)  # (3, h, w)
+        s0 = frame[0]
         lit = v & (s0 >= POLARISATION_LIT_FRACTION * float(np.percentile(s0[v].numpy(), 99.0)))
-        mean = _box_mean(stokes, lit.to(torch.float32), POLARISATION_WINDOW)  # (3, h, w)
+        mean = _box_mean(frame, lit.to(torch.float32), POLARISATION_WINDOW)  # (3, h, w)
         at = mean[:, lit]  # (3, n) the lit observations only
         dolp = torch.hypot(at[1], at[2]) / at[0].clamp_min(1e-12)  # (n,)
         values.append(dolp.numpy())
-        del mosaic, full, stokes
     if not values:
         return 0.0, 0
     pooled = np.concatenate(values)
     return float(np.percentile(pooled, POLARISATION_PERCENTILE)), int(pooled.size)
 
 
-def check_polarisation_signal(capture: Capture, inputs: RecoveryInputs) -> float | None:
+def check_polarisation_signal(capture: Capture, inputs: RecoveryInputs, *, bilinear_centre: bool = False) -> float | None:
     """Refuse frames that carry no polarisation signal (a demosaiced or plain image read as a raw
     mosaic; module docstring).
 
     Args:
         capture: the capture preprocessed (frames (K, 2H, 2W)).
         inputs: its :class:`RecoveryInputs` (``valid`` (K, H, W), ``mask`` (H, W)).
+        bilinear_centre: ``inputs.stokes`` are the bilinear estimates at the block centres (preprocess with
+            ``demosaic: bilinear``, ``sample_at: centre``): reused instead of demosaicing the frames again.
 
     Returns:
         The measured :func:`polarisation_dolp`, or None when not judged: plain intensity frames
@@ -384,7 +392,8 @@ def check_polarisation_signal(capture: Capture, inputs: RecoveryInputs) -> float
     if is_plain_intensity(capture, mask if mask.any() else None):
         logger.debug("diagnose: plain intensity frames (four equal sites): no polarisation expected")
         return None
-    dolp, n = polarisation_dolp(capture, inputs.valid & inputs.mask.unsqueeze(0))
+    dolp, n = polarisation_dolp(capture, inputs.valid & inputs.mask.unsqueeze(0),
+                                inputs.stokes if bilinear_centre else None)
     if n < POLARISATION_MIN_OBSERVATIONS:
         logger.debug("diagnose: %d usable observations: too few to judge the polarisation signal", n)
         return None

@@ -306,7 +306,8 @@ def preprocess_capture(
     check_observations(capture, out, dark=dark, saturated=saturated, dark_threshold=dark_threshold,
                        saturation_margin=saturation_margin, points=points)
     if polarisation_check:
-        check_polarisation_signal(capture, out)
+        check_polarisation_signal(capture, out, bilinear_centre=(demosaic == "bilinear" and sample_at == "centre"
+                                                                 and bayer is None and polcal is None))
     return out
 
 
