@@ -34,7 +34,7 @@ from polarshape.checks import check_dtype_floating
 from polarshape.imaging.mosaic import MosaicLayout, channel_angles_rad, check_layout, check_mosaic_shape, split_mosaic
 from polarshape.imaging.stokes import intensities_from_stokes, stokes_from_intensities
 
-__all__ = ["DEMOSAIC_METHODS", "DemosaicMethod", "intensities_from_mosaic", "stokes_from_mosaic"]
+__all__ = ["DEMOSAIC_METHODS", "DemosaicMethod", "block_mean_bilinear_stokes", "intensities_from_mosaic", "stokes_from_mosaic"]
 
 DemosaicMethod = Literal["superpixel", "bilinear", "edge_aware"]
 DEMOSAIC_METHODS: tuple[str, ...] = ("superpixel", "bilinear", "edge_aware")
@@ -179,6 +179,39 @@ def stokes_from_mosaic(
     intensities = (
         split_mosaic(mosaic, layout) if method == "superpixel" else _full_resolution(mosaic, layout, method, tau_rel)
     )
+    return stokes_from_intensities(intensities, channel_angles_rad(device=mosaic.device, dtype=mosaic.dtype))
+
+
+def _toward(g: Tensor, dim: int, after: bool) -> Tensor:
+    """¾ g + ¼ (the neighbouring sample after (or before) each one along ``dim``), edge repeated."""
+    return 0.5 * (g + _midpoints(g, dim, after))
+
+
+def block_mean_bilinear_stokes(mosaic: Tensor, layout: MosaicLayout = _IMX250MZR) -> Tensor:
+    """The bilinear Stokes estimate averaged over each 2×2 block, computed at block resolution.
+
+    Equal (to rounding) to ``avg_pool2d(stokes_from_mosaic(mosaic, layout, "bilinear"), 2)``: over
+    its block, the bilinear image of a channel at site (i, j) holds the sample g, its midpoints
+    across (A g) and down (D g) and their midpoint (D A g); their mean ¼ (1 + A)(1 + D) g is the
+    separable [¾, ¼] filter of the channel's own lattice toward the block's other sites — a quarter
+    of the full-resolution work and memory.
+
+    Args:
+        mosaic: (*, H, W) raw mosaic, floating point, H and W even.
+        layout: the mosaic's layout as stored.
+
+    Returns:
+        (*, 3, H/2, W/2) Stokes vectors, same dtype and device as ``mosaic``.
+    """
+    _prepare(mosaic, layout, "bilinear", 0.03)
+    *batch, h, w = mosaic.shape
+    m = mosaic.reshape(-1, h, w)
+    planes = []
+    for c in range(4):
+        i, j = layout.site_of_channel(c)
+        g = m[:, i::2, j::2]  # (N, H/2, W/2)
+        planes.append(_toward(_toward(g, -1, after=j == 0), -2, after=i == 0))
+    intensities = torch.stack(planes, dim=1).reshape(*batch, 4, h // 2, w // 2)
     return stokes_from_intensities(intensities, channel_angles_rad(device=mosaic.device, dtype=mosaic.dtype))
 
 

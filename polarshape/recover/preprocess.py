@@ -76,7 +76,7 @@ from polarshape.brdf.geometry import sensor_plane_basis, sensor_plane_stokes
 from polarshape.cameras import SAMPLE_SITES, Camera, camera_from_spec
 from polarshape.imaging.analyser import PolarimetricCalibration, calibrated_pinv, calibrated_stokes, ideal_equivalent_sites
 from polarshape.imaging.colour import bayer_reach, colour_stokes_from_mosaic, shifted_bayer
-from polarshape.imaging.demosaic import stokes_from_mosaic
+from polarshape.imaging.demosaic import block_mean_bilinear_stokes, stokes_from_mosaic
 from polarshape.imaging.mosaic import MosaicLayout, split_mosaic
 from polarshape.imaging.pixels import counts_to_float, max_count, reduce_mask_to_superpixels, saturation_count
 from polarshape.errors import CaptureError
@@ -124,10 +124,9 @@ def superpixel_stokes(mosaic: Tensor, layout: MosaicLayout, *, demosaic: str = "
         if site is not None:
             raise ValueError(f"sample_at {sample_at!r} needs demosaic 'bilinear' (the super-pixel estimate is at the centre)")
         return stokes_from_mosaic(mosaic, layout, "superpixel")
+    if site is None:  # the mean of the block's four bilinear estimates, at block resolution
+        return block_mean_bilinear_stokes(mosaic, layout)
     full = stokes_from_mosaic(mosaic, layout, "bilinear")  # (*, 3, 2H, 2W)
-    if site is None:
-        lead = full.shape[:-2]
-        return F.avg_pool2d(full.reshape(-1, *full.shape[-2:]).unsqueeze(1), 2).reshape(*lead, *(n // 2 for n in full.shape[-2:]))
     return full[..., site[0]::2, site[1]::2]
 
 

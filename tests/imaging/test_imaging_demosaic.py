@@ -13,7 +13,7 @@ import torch
 import torch.nn.functional as F
 
 from polarshape.errors import ShapeError
-from polarshape.imaging.demosaic import DEMOSAIC_METHODS, intensities_from_mosaic, stokes_from_mosaic
+from polarshape.imaging.demosaic import DEMOSAIC_METHODS, block_mean_bilinear_stokes, intensities_from_mosaic, stokes_from_mosaic
 from polarshape.imaging.mosaic import MosaicLayout, channel_angles_rad, mosaic_from_stokes
 from polarshape.imaging.stokes import aolp, dolp, intensities_from_stokes
 
@@ -202,3 +202,13 @@ def test_mitsuba_sphere_aolp_follows_normal_azimuth() -> None:
     assert capture.layout == MosaicLayout.imx250mzr()
     assert fractions["ours"] > 0.85, fractions
     assert fractions["flipped"] < 0.4, fractions
+
+
+@pytest.mark.parametrize(("dx", "dy"), [(0, 0), (1, 0), (0, 1), (1, 1)])
+def test_block_mean_bilinear_equals_the_pooled_full_resolution_estimate(dx: int, dy: int) -> None:
+    from polarshape.imaging.mosaic import MosaicLayout
+
+    layout = MosaicLayout.imx250mzr().shifted(dx, dy)
+    m = torch.rand(2, 3, 10, 14, dtype=torch.float64, generator=torch.Generator().manual_seed(dx + 2 * dy))
+    pooled = F.avg_pool2d(stokes_from_mosaic(m, layout, "bilinear").reshape(-1, 10, 14), 2).reshape(2, 3, 3, 5, 7)
+    assert torch.allclose(block_mean_bilinear_stokes(m, layout), pooled, atol=1e-14)
