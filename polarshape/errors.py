@@ -14,6 +14,7 @@ __all__ = [
     "BitDepthWarning",
     "CameraError",
     "CaptureError",
+    "ClippedLobeWarning",
     "ConfigError",
     "ConventionWarning",
     "DeviceError",
@@ -122,6 +123,12 @@ class ParameterBoundWarning(PolarshapeWarning):
     """A fitted material parameter sits at the edge of the range the solver searches (e.g. β at 6, k_s
     at 0): the fit pushed against its limits because the model cannot explain the data as given —
     usually wrong inputs (see :class:`FitResidualWarning`), sometimes a material outside the model."""
+
+
+class ClippedLobeWarning(PolarshapeWarning):
+    """The specular lobe's core is saturated wherever the object shows it (in every exposure): the
+    fit sees only the lobe's flanks, so the fitted α, β and k_s are not identified (they drift to
+    their bounds or trade off) — capture exposure brackets (``exposures_us``) or a shorter exposure."""
 
 
 class FilledPixelsWarning(PolarshapeWarning):

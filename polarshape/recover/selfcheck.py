@@ -36,6 +36,14 @@ and if not, which input slip explains it? Each check issues a named warning
 - **parameter bounds** (:class:`~polarshape.errors.ParameterBoundWarning`): ior, α, β, κ within 1 %
   of :data:`polarshape.recover.reflectometry.BOUNDS` (α, β on the log scale the solver uses; κ = 0
   is the default, not a bound), k_s = 0.
+- **clipped lobe** (:class:`~polarshape.errors.ClippedLobeWarning`, :func:`clipped_lobe`): the
+  observations whose half vector lies within θ_c = max(atan α, :data:`LOBE_CORE_MIN_DEG`) of the
+  fitted normal (the lobe's core, where the fitted lobe peaks; the floor keeps a core when α sits at
+  its lower bound) number at least :data:`LOBE_CORE_MIN_OBSERVATIONS` and at least
+  :data:`CLIPPED_CORE_FRACTION` of them are saturated (in every exposure, with brackets): α, β and k_s
+  are then fitted to the lobe's flanks only. Measured (``benchmarks/hdr_brackets.py``): a sphere
+  α = 0.03 peaking ≈ 64× full scale, one exposure: 1.0 of the core saturated; bracketed ×1, ×1/8,
+  ×1/64: ≈ 0.
 - **filled / frozen pixels** (:class:`~polarshape.errors.FilledPixelsWarning`,
   :class:`~polarshape.errors.FrozenPixelsWarning`): more than :data:`FILLED_FRACTION_MAX` of the mask
   filled from neighbours; more than :data:`FROZEN_FRACTION_MAX` of the FMBRDF normals within 0.05°
@@ -64,6 +72,7 @@ from torch import Tensor
 
 from polarshape.errors import (
     BitDepthWarning,
+    ClippedLobeWarning,
     ConventionWarning,
     FilledPixelsWarning,
     FitResidualWarning,
@@ -82,8 +91,8 @@ from polarshape.recover.reflectometry import BOUNDS
 logger = logging.getLogger(__name__)
 
 __all__ = [
-    "CHECK_WARNINGS", "FILLED_FRACTION_MAX", "FROZEN_FRACTION_MAX", "RESIDUAL_RATIO_MAX", "RecoveryResult",
-    "SelfChecks", "convention_scores", "frame_order", "residual_to_noise", "run_self_checks",
+    "CHECK_WARNINGS", "CLIPPED_CORE_FRACTION", "FILLED_FRACTION_MAX", "LOBE_CORE_MIN_DEG", "LOBE_CORE_MIN_OBSERVATIONS", "FROZEN_FRACTION_MAX", "RESIDUAL_RATIO_MAX", "RecoveryResult",
+    "SelfChecks", "clipped_lobe", "convention_scores", "frame_order", "residual_to_noise", "run_self_checks",
 ]
 
 #: residual_to_noise above this: FitResidualWarning (clean ≤ 1.12 measured, failures ≥ 3.7; module docstring).
@@ -103,13 +112,19 @@ FILLED_FRACTION_MAX = 0.2
 FROZEN_FRACTION_MAX = 0.5
 #: Lambertian held-out s0 error below the FMBRDF's by more than this fraction: ModelEvidenceWarning.
 MODEL_EVIDENCE_MARGIN = 0.05
+#: The lobe's core: half vectors within max(atan α, this) degrees of the normal.
+LOBE_CORE_MIN_DEG = 2.0
+#: Fewer core observations than this: the object shows no lobe core to judge (no warning).
+LOBE_CORE_MIN_OBSERVATIONS = 4
+#: At least this fraction of the core observations saturated: ClippedLobeWarning.
+CLIPPED_CORE_FRACTION = 0.9
 _BOUND_TOLERANCE = 0.01
 _CHI2_1_MEDIAN = 0.454936  # median of a χ² variable with one degree of freedom
 
 #: The warning classes the self-checks issue (and the ones issued earlier that they list).
 CHECK_WARNINGS: tuple[type[PolarshapeWarning], ...] = (
     FitResidualWarning, ConventionWarning, FrameOrderWarning, BitDepthWarning, ParameterBoundWarning,
-    FilledPixelsWarning, FrozenPixelsWarning, ModelEvidenceWarning,
+    ClippedLobeWarning, FilledPixelsWarning, FrozenPixelsWarning, ModelEvidenceWarning,
 )
 
 
@@ -146,7 +161,7 @@ class SelfChecks:
     def as_dict(self) -> dict[str, Any]:
         """params.json's ``checks``: ``warnings`` [{name, message}], ``residual_to_noise`` (robust χ² ratio,
         1 = at the noise), ``residual_to_noise_rms``, ``noise`` (the model used), ``convention``,
-        ``frame_order``, ``bounds``, ``filled_fraction``, ``frozen_fraction``, ``model_evidence``, ``seconds``."""
+        ``frame_order``, ``bounds``, ``clipped_lobe``, ``filled_fraction``, ``frozen_fraction``, ``model_evidence``, ``seconds``."""
         return {"warnings": [{"name": n, "message": m} for n, m in self.warnings], **self.measured}
 
     def _warn(self, kind: type[PolarshapeWarning], message: str) -> None:
@@ -407,6 +422,55 @@ def _check_bounds(checks: SelfChecks, result: RecoveryResult, fitted_material: b
             "outside the model"))
 
 
+def clipped_lobe(inputs: RecoveryInputs, normals: Tensor, params: Mapping[str, float]) -> dict[str, Any] | None:
+    """How much of the fitted specular lobe's core the capture saw saturated (module docstring).
+
+    Args:
+        inputs: the recovery's inputs (lights, view, saturated, mask on the full grid).
+        normals: (H, W, 3) fitted unit normals.
+        params: the fitted material (``alpha``).
+
+    Returns:
+        ``{"core_deg", "core_observations", "saturated", "clipped_fraction"}``, or None without a
+        finite α.
+    """
+    alpha = params.get("alpha")
+    if alpha is None or not math.isfinite(alpha):
+        return None
+    n = normals.detach().to("cpu", torch.float64)  # (H, W, 3)
+    lights = inputs.lights.to("cpu", torch.float64)  # (K, H, W, 3)
+    view = inputs.view.to("cpu", torch.float64)  # (H, W, 3)
+    half = F.normalize(lights + view, dim=-1)  # (K, H, W, 3)
+    cos_h = (half * n).sum(-1)  # (K, H, W)
+    core_deg = max(math.degrees(math.atan(max(alpha, 0.0))), LOBE_CORE_MIN_DEG)
+    front = ((lights * n).sum(-1) > 0) & ((view * n).sum(-1) > 0)
+    seen = inputs.mask.cpu() & torch.isfinite(n).all(-1)
+    core = front & seen & (cos_h >= math.cos(math.radians(core_deg)))
+    n_core = int(core.sum())
+    n_sat = int((core & inputs.saturated.cpu()).sum())
+    return {"core_deg": core_deg, "core_observations": n_core, "saturated": n_sat,
+            "clipped_fraction": n_sat / n_core if n_core else None}
+
+
+def _check_clipped_lobe(checks: SelfChecks, inputs: RecoveryInputs, result: RecoveryResult,
+                        fitted_material: bool) -> None:
+    if result.model != "fmbrdf" or not fitted_material:
+        checks.measured["clipped_lobe"] = None
+        return
+    lobe = clipped_lobe(inputs, result.normals, result.params)
+    checks.measured["clipped_lobe"] = lobe
+    if lobe is None or lobe["core_observations"] < LOBE_CORE_MIN_OBSERVATIONS:
+        return
+    if lobe["clipped_fraction"] >= CLIPPED_CORE_FRACTION:
+        p = result.params
+        checks._warn(ClippedLobeWarning, (
+            f"the specular lobe's core is clipped: {lobe['saturated']} of {lobe['core_observations']} observations "
+            f"within {lobe['core_deg']:.1f}° of the mirror direction are saturated (in every exposure), so the fitted "
+            f"α {p.get('alpha', math.nan):.3g}, β {p.get('beta', math.nan):.3g} and k_s {p.get('k_s', math.nan):.3g} "
+            "are not identified (the fit sees only the lobe's flanks): capture exposure brackets (exposures_us in "
+            "the session's capture section or the scene's camera; capture format 2) or expose shorter"))
+
+
 def _check_pixels(checks: SelfChecks, result: RecoveryResult) -> None:
     mask = result.mask.cpu()
     n_mask = max(int(mask.sum()), 1)
@@ -480,6 +544,7 @@ def run_self_checks(capture: Capture, inputs: RecoveryInputs, result: RecoveryRe
     _check_convention(checks, capture, inputs, result)
     _check_frame_order(checks, capture, inputs)
     _check_bounds(checks, result, fitted_material)
+    _check_clipped_lobe(checks, inputs, result, fitted_material)
     _check_pixels(checks, result)
     _check_model_evidence(checks, result, validation)
     checks.measured["seconds"] = time.perf_counter() - t0
