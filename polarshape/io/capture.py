@@ -746,6 +746,9 @@ def load_capture(path: str | os.PathLike[str]) -> Capture:
 
 def _spec_to_yaml(spec: CaptureSpec) -> str:
     data = spec.model_dump(mode="json", exclude_none=True)
+    for light in data["lights"]:
+        if not light.get("brackets"):
+            light.pop("brackets", None)  # format 1 has no such key; format 2 without brackets needs none
     return yaml.safe_dump(data, sort_keys=False, default_flow_style=None, allow_unicode=True)
 
 

@@ -74,7 +74,7 @@ EXPOSURE_RATIO_TOLERANCE = 1.5
 #: without it).
 HEADROOM = 0.9
 #: Sites used to compare two exposures: above this fraction of full scale in both (no dark noise).
-_RATIO_MIN_SIGNAL = 0.02
+_RATIO_MIN_SIGNAL = 0.01
 #: Fewer overlapping sites than this: the pair is not compared.
 _RATIO_MIN_SITES = 64
 
@@ -113,17 +113,18 @@ def merge_exposures(values: Tensor, clipped: Tensor, ratios: Tensor, noise: Site
     """Merge B exposures of one mosaic (module docstring).
 
     Args:
-        values: (B, 2H, 2W) float64 x_j, fractions of full scale of each frame.
-        clipped: (B, 2H, 2W) bool samples at the saturation level.
+        values: (B, *) float64 x_j, fractions of full scale of each frame (e.g. (B, 2H, 2W) mosaics).
+        clipped: (B, *) bool samples at the saturation level.
         ratios: (B,) float64 r_j = t_j / t_0 (r_0 = 1), all > 0.
         noise: per-site noise of one frame.
         dark_threshold: samples below this fraction of full scale are excluded (except the longest
             unclipped one of a site).
 
     Returns:
-        :class:`MergedBracket`.
+        :class:`MergedBracket` (its maps of shape (*)).
     """
-    r = ratios.to(values).reshape(-1, 1, 1)  # (B, 1, 1)
+    ones = (1,) * (values.ndim - 1)
+    r = ratios.to(values).reshape(-1, *ones)  # (B, 1, …)
     # near the top, the samples that escaped clipping read low (the others clipped): not used when a
     # sample below the headroom is there
     below = ~clipped & (values <= HEADROOM)
@@ -132,10 +133,10 @@ def merge_exposures(values: Tensor, clipped: Tensor, ratios: Tensor, noise: Site
     score = torch.where(usable, r.expand_as(values), torch.full_like(values, -math.inf))
     best = score.argmax(0, keepdim=True)  # (1, 2H, 2W)
     none = ~usable.any(0)  # (2H, 2W)
-    best = torch.where(none.unsqueeze(0), torch.argmin(ratios).reshape(1, 1, 1).to(best), best)
+    best = torch.where(none.unsqueeze(0), torch.argmin(ratios).reshape(1, *ones).to(best), best)
     estimates = values / r  # (B, 2H, 2W) y_j
     y_best = estimates.gather(0, best)[0]  # (2H, 2W)
-    index = torch.arange(values.shape[0], device=values.device).reshape(-1, 1, 1)
+    index = torch.arange(values.shape[0], device=values.device).reshape(-1, *ones)
     keep = usable & ((values >= dark_threshold) | (index == best))
     var = noise.variance(r * y_best.unsqueeze(0)) / (r * r)  # (B, 2H, 2W) var(y_j) at the estimate
     weight = torch.where(keep, 1.0 / var, torch.zeros_like(var))
@@ -189,9 +190,10 @@ def _frame_names(capture: Capture, k: int) -> list[str]:
 def check_bracket_exposures(capture: Capture, k: int, values: Tensor, clipped: Tensor, exposures: np.ndarray) -> None:
     """Refuse light ``k``'s frames when their brightness ratios contradict their exposure times.
 
-    Frames are compared in order of exposure, each with the next longer one, over the sites above
-    ``_RATIO_MIN_SIGNAL`` of full scale and unclipped in both: the median ratio of their values must
-    be within :data:`EXPOSURE_RATIO_TOLERANCE` of the ratio of their ``exposure_us``.
+    Every two frames are compared over the sites above ``_RATIO_MIN_SIGNAL`` of full scale and
+    unclipped in both (pairs sharing fewer than ``_RATIO_MIN_SITES`` such sites are not): the median
+    ratio of their values must be within :data:`EXPOSURE_RATIO_TOLERANCE` of the ratio of their
+    ``exposure_us``.
 
     Args:
         capture: the capture (frame names for the message).
@@ -203,9 +205,10 @@ def check_bracket_exposures(capture: Capture, k: int, values: Tensor, clipped: T
     Raises:
         CaptureError: a pair of frames whose brightness ratio is off, naming both files and the fix.
     """
-    order = np.argsort(exposures)
     names = _frame_names(capture, k)
-    for short, long in zip(order[:-1], order[1:]):
+    pairs = [(a, b) if exposures[a] < exposures[b] else (b, a) for a in range(len(exposures))
+             for b in range(a + 1, len(exposures))]
+    for short, long in pairs:
         both = ~clipped[short] & ~clipped[long] & (values[short] >= _RATIO_MIN_SIGNAL) & (values[long] >= _RATIO_MIN_SIGNAL)
         n = int(both.sum())
         if n < _RATIO_MIN_SITES:
