@@ -102,3 +102,12 @@ def test_in_memory_brackets_must_match_the_spec(tmp_path: Path) -> None:
         write_capture(tmp_path / "bad", bad)
     with pytest.raises(CaptureError, match="Capture.brackets is missing"):
         write_capture(tmp_path / "bad", Capture(spec=capture.spec, frames=capture.frames))
+
+
+def test_the_documented_format_2_example_is_valid() -> None:
+    import re
+
+    text = (Path(__file__).resolve().parents[2] / "docs" / "capture-format.md").read_text(encoding="utf-8")
+    example = next(b for b in re.findall(r"```yaml\n(.*?)```", text, flags=re.S) if CAPTURE_FORMAT_BRACKETS in b)
+    spec = parse_capture_spec(yaml.safe_load(example), "docs/capture-format.md")
+    assert spec.bracket_size == 3 and spec.exposures_us.shape == (2, 3)
