@@ -19,6 +19,12 @@ is taken (``sample_at``) and how (``demosaic``):
   defective pixels drop out (three sites determine a block; a block with ≥ 2 defects is invalid)
   and are not taken for clipped.
 
+- exposure brackets (capture format 2): each light's frames are first merged into one radiance
+  mosaic in fractions of full scale at its reference exposure (:mod:`polarshape.recover.hdr`; values
+  above 1 where the reference clipped); an observation is saturated when a site is clipped in every
+  exposure, the mixed-block test uses each block's merged variance, and the noise model is fitted on
+  the blocks read at the reference exposure. One frame per light: exactly the path without brackets.
+
 - ``stokes`` (K, 3, H, W): linear Stokes (s0, s1, s2) in fractions of full scale (spec §1:
   s0 = ½ ΣI, s1 = I0 − I90, s2 = I45 − I135), **in each pixel's Stokes frame** (spec §1). A
   perspective capture stores angles in the sensor-plane convention; they are mapped back here.
