@@ -61,6 +61,7 @@ __all__ = [
     "SiteNoise",
     "bracket_site_noise",
     "check_bracket_exposures",
+    "clipped_counts",
     "merge_exposures",
     "merge_light",
 ]
@@ -147,8 +148,8 @@ def merge_exposures(values: Tensor, clipped: Tensor, ratios: Tensor, noise: Site
     return MergedBracket(radiance=merged, variance=variance, clipped=none, reference_used=keep[0])
 
 
-def _clipped_counts(frames: np.ndarray, bit_depth: int, margin: int) -> Tensor:
-    """(*) bool counts at the saturation level less ``margin`` (as preprocessing flags them)."""
+def clipped_counts(frames: np.ndarray, bit_depth: int, margin: int = 0) -> Tensor:
+    """(*) bool: ``frames`` (*) counts at the saturation level less ``margin`` (clipped sites)."""
     return torch.from_numpy(frames.astype(np.int64) >= saturation_count(bit_depth) - int(margin))
 
 
@@ -170,7 +171,7 @@ def bracket_site_noise(capture: Capture, *, dark_threshold: float, saturation_ma
                              capture.layout)  # (4, H, W)
         redundancy[i] = site_redundancy(sites)
         block_s0[i] = 0.5 * sites.sum(0)
-        clipped = reduce_mask_to_superpixels(_clipped_counts(capture.frames[i], capture.bit_depth, saturation_margin),
+        clipped = reduce_mask_to_superpixels(clipped_counts(capture.frames[i], capture.bit_depth, saturation_margin),
                                              "any")
         usable[i] = ~clipped & (block_s0[i] >= dark_threshold)
     step = 1.0 / (max_count(capture.bit_depth) - black)
@@ -248,7 +249,7 @@ def merge_light(capture: Capture, k: int, noise: SiteNoise, *, dark_threshold: f
     values = counts_to_float(frames, capture.bit_depth, black, dtype=torch.float64)  # (B, 2H, 2W)
     if black_shift is not None:
         values = values - black_shift.to(values)
-    clipped = _clipped_counts(frames, capture.bit_depth, saturation_margin)
+    clipped = clipped_counts(frames, capture.bit_depth, saturation_margin)
     check_bracket_exposures(capture, k, values, clipped, exposures[k])
     ratios = torch.as_tensor(exposures[k] / exposures[k][0], dtype=torch.float64)
     return merge_exposures(values, clipped, ratios, noise, dark_threshold=dark_threshold)

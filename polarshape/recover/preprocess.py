@@ -61,12 +61,12 @@ from polarshape.cameras import SAMPLE_SITES, Camera, camera_from_spec
 from polarshape.imaging.analyser import PolarimetricCalibration, calibrated_pinv, calibrated_stokes, ideal_equivalent_sites
 from polarshape.imaging.demosaic import stokes_from_mosaic
 from polarshape.imaging.mosaic import MosaicLayout, split_mosaic
-from polarshape.imaging.pixels import counts_to_float, max_count, reduce_mask_to_superpixels, saturation_count
+from polarshape.imaging.pixels import counts_to_float, max_count, reduce_mask_to_superpixels
 from polarshape.errors import CaptureError
 from polarshape.io.capture import Capture
 from polarshape.io.polarimetric import capture_polarimetric_calibration
 from polarshape.recover.diagnose import check_observations, check_polarisation_signal
-from polarshape.recover.hdr import MergedBracket, SiteNoise, bracket_site_noise, merge_light
+from polarshape.recover.hdr import MergedBracket, SiteNoise, bracket_site_noise, clipped_counts, merge_light
 from polarshape.recover.noise import demosaic_variance_factor, estimate_noise, site_redundancy
 from polarshape.recover.observations import RecoveryInputs
 
@@ -352,8 +352,7 @@ class _Brackets:
 def _saturated(frames: np.ndarray, bit_depth: int, margin: int, demosaic: str, *, ignore: Tensor | None = None) -> Tensor:
     """(*, H, W) bool observations of frames (*, 2H, 2W) with a site at the top count (less ``margin``);
     ``ignore`` (2H, 2W): pixels that do not count (a calibration's defects: a hot pixel stuck at the top)."""
-    top = saturation_count(bit_depth) - int(margin)
-    return _saturated_sites(torch.from_numpy(frames.astype(np.int64) >= top), demosaic, ignore=ignore)
+    return _saturated_sites(clipped_counts(frames, bit_depth, margin), demosaic, ignore=ignore)
 
 
 def _saturated_sites(clipped: Tensor, demosaic: str, *, ignore: Tensor | None = None) -> Tensor:
