@@ -40,14 +40,14 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
 from torch import Tensor
 
 from polarshape.errors import CaptureError
-from polarshape.imaging.mosaic import split_mosaic
+from polarshape.imaging.mosaic import MosaicLayout, split_mosaic
 from polarshape.imaging.pixels import counts_to_float, max_count, reduce_mask_to_superpixels, saturation_count
 from polarshape.io.capture import CAPTURE_YAML, Capture
 from polarshape.recover.noise import estimate_noise, site_redundancy
@@ -55,6 +55,7 @@ from polarshape.recover.noise import estimate_noise, site_redundancy
 logger = logging.getLogger(__name__)
 
 __all__ = [
+    "BracketMerger",
     "EXPOSURE_RATIO_TOLERANCE",
     "HEADROOM",
     "MergedBracket",
@@ -107,6 +108,13 @@ class MergedBracket:
     variance: Tensor
     clipped: Tensor
     reference_used: Tensor
+
+    def redundancy_z(self, layout: MosaicLayout, redundancy: Tensor) -> Tensor:
+        """(H, W) the four-site redundancy d (:func:`polarshape.recover.noise.site_redundancy` of the
+        merged mosaic) over its σ, var(d) = Σ of the four sites' merged variances: the mixed-block
+        test's statistic, valid whichever exposure each site came from."""
+        var_d = split_mosaic(self.variance, layout).sum(-3)  # (H, W)
+        return redundancy / var_d.clamp_min(1e-300).sqrt()
 
 
 def merge_exposures(values: Tensor, clipped: Tensor, ratios: Tensor, noise: SiteNoise, *,
@@ -253,3 +261,42 @@ def merge_light(capture: Capture, k: int, noise: SiteNoise, *, dark_threshold: f
     check_bracket_exposures(capture, k, values, clipped, exposures[k])
     ratios = torch.as_tensor(exposures[k] / exposures[k][0], dtype=torch.float64)
     return merge_exposures(values, clipped, ratios, noise, dark_threshold=dark_threshold)
+
+
+@dataclass(frozen=True)
+class BracketMerger:
+    """What merging a format-2 capture's lights needs once (:func:`bracket_site_noise`), then
+    :meth:`merge` one light at a time (preprocessing's per-light loop).
+
+    Attributes:
+        capture: a capture whose lights hold several exposures.
+        noise: its per-site noise.
+        dark_threshold, saturation_margin: as preprocessing's.
+        black_shift: (2H, 2W) a polarimetric calibration's per-pixel black level minus the nominal one
+            (fraction of full scale), or None.
+    """
+
+    capture: Capture
+    noise: SiteNoise
+    dark_threshold: float
+    saturation_margin: int
+    black_shift: Tensor | None = None
+
+    @classmethod
+    def of(cls, capture: Capture, *, dark_threshold: float, saturation_margin: int = 0,
+           black_shift: Tensor | None = None) -> BracketMerger | None:
+        """The merger of ``capture``, or None when its lights hold one frame each."""
+        if not capture.has_brackets:
+            return None
+        noise = bracket_site_noise(capture, dark_threshold=dark_threshold, saturation_margin=saturation_margin)
+        logger.info("preprocess: merging %d exposures per light (exposure brackets)", capture.spec.bracket_size)
+        return cls(capture, noise, dark_threshold, int(saturation_margin), black_shift)
+
+    def merge(self, k: int) -> MergedBracket:
+        """Light ``k`` merged (:func:`merge_light`). A calibration's black shift is taken off every frame
+        before merging and put back after, since preprocessing takes it off the mosaic it is given."""
+        merged = merge_light(self.capture, k, self.noise, dark_threshold=self.dark_threshold,
+                             saturation_margin=self.saturation_margin, black_shift=self.black_shift)
+        if self.black_shift is None:
+            return merged
+        return replace(merged, radiance=merged.radiance + self.black_shift.to(merged.radiance))

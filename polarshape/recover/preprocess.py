@@ -49,7 +49,7 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -66,7 +66,7 @@ from polarshape.errors import CaptureError
 from polarshape.io.capture import Capture
 from polarshape.io.polarimetric import capture_polarimetric_calibration
 from polarshape.recover.diagnose import check_observations, check_polarisation_signal
-from polarshape.recover.hdr import MergedBracket, SiteNoise, bracket_site_noise, clipped_counts, merge_light
+from polarshape.recover.hdr import BracketMerger, clipped_counts
 from polarshape.recover.noise import demosaic_variance_factor, estimate_noise, site_redundancy
 from polarshape.recover.observations import RecoveryInputs
 
@@ -179,12 +179,14 @@ def preprocess_capture(
     redundancy = torch.empty((k, h, w), dtype=torch.float64)  # the four-site check d (polarisation signal)
     scaled = torch.empty((k, h, w), dtype=torch.float64)  # d / √(s0 + c) (mixed blocks)
     block_s0 = torch.empty((k, h, w), dtype=torch.float64)  # the block's own s0 (noise model)
-    brackets = _Brackets.of(capture, dark_threshold, saturation_margin, polcal)  # None: one exposure per light
+    brackets = BracketMerger.of(capture, dark_threshold=dark_threshold, saturation_margin=saturation_margin,
+                                black_shift=None if polcal is None else polcal.black_shift)  # None: one exposure
+    reference = None if brackets is None else torch.empty((k, h, w), dtype=torch.bool)  # blocks read at the reference
     for i in range(k):
         if brackets is None:
             mosaic = counts_to_float(frames[i], bit_depth, black, dtype=torch.float64)  # (2H, 2W)
         else:
-            merged = brackets.merge(capture, i)
+            merged = brackets.merge(i)
             mosaic = merged.radiance
         s, sites = _stokes_and_sites(mosaic, capture.layout, polcal, demosaic=demosaic, sample_at=sample_at)
         stokes[i] = s if to_frames is None else sensor_plane_stokes(s, basis=to_frames)
@@ -195,9 +197,10 @@ def preprocess_capture(
         if brackets is None:
             scaled[i] = _scaled_redundancy(sites)
             saturated[i] = _saturated(frames[i], bit_depth, saturation_margin, demosaic, ignore=ignore)
-        else:
-            scaled[i], saturated[i], brackets.reference[i] = brackets.block_checks(merged, capture.layout, redundancy[i],
-                                                                                  demosaic, ignore)
+        else:  # mixed blocks: d as a z-score of its merged variance; saturated: clipped in every exposure
+            scaled[i] = merged.redundancy_z(capture.layout, redundancy[i])
+            saturated[i] = _saturated_sites(merged.clipped, demosaic, ignore=ignore)
+            reference[i] = reduce_mask_to_superpixels(merged.reference_used, "all")
             del merged
         del mosaic, s, sites
     mask = _mask(capture, ~dark & ~saturated, (h, w))
@@ -212,7 +215,7 @@ def preprocess_capture(
     has_pol = _has_polarisation(stokes, redundancy, valid, step)
     factor = demosaic_variance_factor(lambda m: superpixel_stokes(m, capture.layout, demosaic=demosaic, sample_at=sample_at)[0])
     # with brackets: the reference exposure's noise (recover/hdr.py: what the noise model sees)
-    noise_usable = valid if brackets is None else valid & brackets.reference
+    noise_usable = valid if reference is None else valid & reference
     noise = estimate_noise(redundancy, block_s0, noise_usable, step=step, variance_factor=factor)
     del redundancy, block_s0
     out = RecoveryInputs(
@@ -304,49 +307,6 @@ def _stokes_and_sites(mosaic: Tensor, layout: MosaicLayout, polcal: _PolcalAppli
     if site is None:
         return F.avg_pool2d(full.unsqueeze(1), 2).squeeze(1), sites
     return full[..., site[0]::2, site[1]::2], sites
-
-
-@dataclass
-class _Brackets:
-    """Exposure brackets of a format-2 capture (:mod:`polarshape.recover.hdr`): the per-site noise
-    that weights the merge, and per light the blocks whose reference exposure was used."""
-
-    noise: SiteNoise
-    dark_threshold: float
-    saturation_margin: int
-    black_shift: Tensor | None
-    reference: Tensor  # (K, H, W) bool blocks whose four sites were unclipped at the reference exposure
-
-    @classmethod
-    def of(cls, capture: Capture, dark_threshold: float, saturation_margin: int,
-           polcal: _PolcalApplication | None) -> _Brackets | None:
-        if not capture.has_brackets:
-            return None
-        k, h2, w2 = capture.frames.shape
-        noise = bracket_site_noise(capture, dark_threshold=dark_threshold, saturation_margin=saturation_margin)
-        logger.info("preprocess: merging %d exposures per light (exposure brackets)", capture.spec.bracket_size)
-        return cls(noise, dark_threshold, int(saturation_margin), None if polcal is None else polcal.black_shift,
-                   torch.empty((k, h2 // 2, w2 // 2), dtype=torch.bool))
-
-    def merge(self, capture: Capture, k: int) -> MergedBracket:
-        """Light ``k`` merged; a calibration's black shift is taken off every frame before merging and
-        put back after (``_stokes_and_sites`` takes it off the merged mosaic)."""
-        merged = merge_light(capture, k, self.noise, dark_threshold=self.dark_threshold,
-                             saturation_margin=self.saturation_margin, black_shift=self.black_shift)
-        if self.black_shift is None:
-            return merged
-        return replace(merged, radiance=merged.radiance + self.black_shift.to(merged.radiance))
-
-    @staticmethod
-    def block_checks(merged: MergedBracket, layout: MosaicLayout, redundancy: Tensor, demosaic: str,
-                     ignore: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
-        """(H, W) each: the redundancy as a z-score of the block's merged variance (mixed blocks), the
-        saturated observations (a site clipped in every exposure), the blocks used at the reference exposure."""
-        var_d = split_mosaic(merged.variance, layout).sum(-3)  # var(d) = Σ of the four sites' variances
-        scaled = redundancy / var_d.clamp_min(1e-300).sqrt()
-        saturated = _saturated_sites(merged.clipped, demosaic, ignore=ignore)
-        reference = reduce_mask_to_superpixels(merged.reference_used, "all")
-        return scaled, saturated, reference
 
 
 def _saturated(frames: np.ndarray, bit_depth: int, margin: int, demosaic: str, *, ignore: Tensor | None = None) -> Tensor:
