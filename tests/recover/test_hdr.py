@@ -134,3 +134,25 @@ def test_simulate_writes_and_reloads_format_2(bracketed: Capture, tmp_path: Path
     np.testing.assert_array_equal(loaded.spec.exposures_us[0], [40000.0, 5000.0, 625.0])
     np.testing.assert_array_equal(loaded.brackets, bracketed.brackets)
     assert (tmp_path / "cap" / "frames" / "000_b2.png").is_file()
+
+
+def test_a_site_clipped_in_every_exposure_flags_its_observation() -> None:
+    """Through preprocessing: a block clipped at every exposure is saturated; one clipped only at the
+    reference is not (its shorter exposure is read instead)."""
+    k, n = 3, 16
+    lights = [{"direction": [0.0, 0.0, -1.0], "frame": f"frames/{i:03d}.png", "exposure_us": 4000.0,
+               "brackets": [{"frame": f"frames/{i:03d}_b1.png", "exposure_us": 1000.0}]} for i in range(k)]
+    spec = parse_capture_spec({"format": CAPTURE_FORMAT_BRACKETS,
+                               "camera": {"projection": "orthographic", "bit_depth": 12}, "lights": lights})
+    rng = np.random.default_rng(0)
+    radiance = np.full((k, 2 * n, 2 * n), 0.4) + rng.normal(0, 0.002, (k, 2 * n, 2 * n))  # fraction at the reference
+    radiance[:, 4:6, 4:6] = 2.0  # clipped at the reference only
+    radiance[:, 20:22, 20:22] = 9.0  # clipped at both
+    frames, short = (np.clip(np.rint(radiance * r * 4095), 0, 4095).astype(np.uint16) for r in (1.0, 0.25))
+    capture = Capture(spec=spec, frames=frames, brackets=short[:, None],
+                      mask=np.ones((n, n), dtype=bool))
+    inputs = preprocess_capture(capture, demosaic="superpixel", polarisation_check=False)
+    assert bool(inputs.saturated[:, 10, 10].all()) and not bool(inputs.valid[:, 10, 10].any())
+    assert not bool(inputs.saturated[:, 2, 2].any()) and bool(inputs.valid[:, 2, 2].all())
+    assert float(inputs.stokes[0, 0, 2, 2]) == pytest.approx(4.0, rel=0.01)  # s0 = ½ Σ of four sites at 2.0
+    assert int(inputs.saturated.sum()) == k
