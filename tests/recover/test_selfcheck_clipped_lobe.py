@@ -7,6 +7,7 @@ import warnings
 from pathlib import Path
 from types import SimpleNamespace
 
+import pytest
 import torch
 import yaml
 
@@ -30,9 +31,9 @@ def _capture(exposures: list[float] | None) -> Capture:
     return SimulatedCamera(parse_scene_config(d), seed=0).render_capture(progress=False)
 
 
-def _checks(capture: Capture, alpha: float) -> tuple[dict, list[str]]:
+def _checks(capture: Capture, alpha: float, demosaic: str = "bilinear") -> tuple[dict, list[str]]:
     """Self-checks of a 'recovery' at the true normals with this α (the observations as its rendering)."""
-    inputs = preprocess_capture(capture)
+    inputs = preprocess_capture(capture, demosaic=demosaic)
     gt = torch.from_numpy(capture.ground_truth["normals"]).to(torch.float32)
     normals = torch.where(torch.isfinite(gt), gt, torch.tensor([0.0, 0.0, -1.0]))
     result = SimpleNamespace(normals=normals, model="fmbrdf", mask=inputs.mask, rendered=inputs.stokes,
@@ -44,17 +45,18 @@ def _checks(capture: Capture, alpha: float) -> tuple[dict, list[str]]:
     return checks.as_dict(), [w.category.__name__ for w in record]
 
 
-def test_clipped_core_warns_and_brackets_do_not() -> None:
-    checks, issued = _checks(_capture(None), alpha=0.01)  # what the fit gives there: α at its bound
+@pytest.mark.parametrize("demosaic", ["bilinear", "superpixel"])
+def test_clipped_core_warns_and_brackets_do_not(demosaic: str) -> None:
+    checks, issued = _checks(_capture(None), alpha=0.01, demosaic=demosaic)  # what the fit gives there: α at its bound
     assert "ClippedLobeWarning" in issued
     lobe = checks["clipped_lobe"]
-    assert lobe["core_observations"] >= 4 and lobe["clipped_fraction"] >= 0.9
+    assert lobe["lights_with_core"] >= 4 and lobe["lights_peak_clipped"] == lobe["lights_with_core"]
     named = [w for w in checks["warnings"] if w["name"] == "ClippedLobeWarning"]
     assert named and "not identified" in named[0]["message"] and "exposures_us" in named[0]["message"]
 
-    checks, issued = _checks(_capture([40000.0, 5000.0, 625.0]), alpha=0.03)
+    checks, issued = _checks(_capture([40000.0, 5000.0, 625.0]), alpha=0.03, demosaic=demosaic)
     assert "ClippedLobeWarning" not in issued
-    assert checks["clipped_lobe"]["clipped_fraction"] < 0.1
+    assert checks["clipped_lobe"]["lights_with_core"] >= 4 and checks["clipped_lobe"]["lights_peak_clipped"] == 0
 
 
 def test_no_core_on_the_object_no_judgement() -> None:
@@ -63,7 +65,8 @@ def test_no_core_on_the_object_no_judgement() -> None:
                              mask=torch.ones(2, 2, dtype=torch.bool), saturated=torch.ones(1, 2, 2, dtype=torch.bool))
     tilted = torch.nn.functional.normalize(torch.tensor([0.5, 0.0, -1.0]), dim=0).expand(2, 2, 3)
     lobe = clipped_lobe(inputs, tilted, {"alpha": 0.03})  # half vector 26° from every normal: no core
-    assert lobe["core_observations"] == 0 and lobe["clipped_fraction"] is None
+    assert lobe["core_observations"] == 0 and lobe["clipped_fraction"] is None and lobe["lights_with_core"] == 0
     lobe = clipped_lobe(inputs, inputs.view, {"alpha": 0.03})  # facing the light and camera: all core, all clipped
     assert lobe["core_observations"] == 4 and lobe["clipped_fraction"] == 1.0
+    assert lobe["lights_with_core"] == 1 and lobe["lights_peak_clipped"] == 1
     assert ClippedLobeWarning.__mro__[1].__name__ == "PolarshapeWarning"
