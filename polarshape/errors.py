@@ -14,6 +14,7 @@ __all__ = [
     "BitDepthWarning",
     "CameraError",
     "CaptureError",
+    "ClippedLobeWarning",
     "ConfigError",
     "ConventionWarning",
     "DeviceError",
@@ -130,6 +131,12 @@ class InterreflectionWarning(PolarshapeWarning):
     fit of direct light explains by bending the normals there: give ``interreflection.albedo_scale``
     (the capture's albedo units per physical albedo, from a white reference target) so that the bounce
     is taken out, or read the marked pixels (``interreflection.npy``) with care."""
+
+
+class ClippedLobeWarning(PolarshapeWarning):
+    """The specular lobe's core is saturated wherever the object shows it (in every exposure): the
+    fit sees only the lobe's flanks, so the fitted α, β and k_s are not identified (they drift to
+    their bounds or trade off) — capture exposure brackets (``exposures_us``) or a shorter exposure."""
 
 
 class FilledPixelsWarning(PolarshapeWarning):

@@ -135,7 +135,8 @@ def select_frames(capture: Capture, frames: Sequence[int] | None) -> Capture:
     if bad or not idx or len(set(idx)) != len(idx):
         raise ConfigError(f"--frames {idx}: give distinct frame indices in 0..{k - 1} (the capture has {k} frames)")
     spec = capture.spec.model_copy(update={"lights": tuple(capture.spec.lights[i] for i in idx)})
-    return dataclasses.replace(capture, spec=spec, frames=capture.frames[idx])
+    brackets = None if capture.brackets is None else capture.brackets[idx]
+    return dataclasses.replace(capture, spec=spec, frames=capture.frames[idx], brackets=brackets)
 
 
 def _brightest_s0(capture: Capture) -> np.ndarray:

@@ -73,3 +73,20 @@ def test_module_entry_point_shows_help():
     cmd = [sys.executable, "-m", "polarshape.cli", "simulate", "--help"]
     result = subprocess.run(cmd, capture_output=True, text=True, check=False)
     assert result.returncode == 0 and "--overwrite" in result.stdout
+
+
+def test_simulate_exposure_brackets_writes_format_2(tmp_path, capsys):
+    scene = yaml.safe_load(SPHERE.read_text())
+    scene["camera"].update(width=32, height=32, pixel_size_m=8e-4, exposure_us=20000, exposures_us=[20000, 2500])
+    scene["lights"] = scene["lights"][:3]
+    path = tmp_path / "scene.yaml"
+    path.write_text(yaml.safe_dump(scene))
+    assert main(["simulate", str(path), "--out", str(tmp_path / "cap"), "--quiet"]) == 0
+    assert "(3 frames × 2 exposures)" in capsys.readouterr().out
+    capture = load_capture(tmp_path / "cap")
+    assert capture.spec.format == "polarshape-capture/2" and capture.brackets.shape == (3, 1, 32, 32)
+    assert [light.exposure_us for light in capture.spec.lights] == [20000.0] * 3
+    scene["camera"]["exposure_us"] = 10000  # disagrees with the reference exposure exposures_us[0]
+    path.write_text(yaml.safe_dump(scene))
+    assert main(["simulate", str(path), "--out", str(tmp_path / "cap2"), "--quiet"]) == 2
+    assert "differs from the first of camera.exposures_us" in capsys.readouterr().err

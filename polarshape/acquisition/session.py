@@ -4,7 +4,8 @@
 captures with any :class:`~.camera.Camera` (averaging frames, optionally bracketing the exposure
 to avoid saturation), saves each light's frame atomically as soon as it is captured, resumes an
 interrupted session by skipping lights whose frames are on disk, and finally writes
-``capture.yaml`` (format ``polarshape-capture/1``, see the README / spec/capture-format.md).
+``capture.yaml`` (format ``polarshape-capture/1``, or ``/2`` with ``exposures_us``; see
+docs/capture-format.md).
 
 :func:`capture_session` does the same from a session YAML file (what ``polarshape capture
 session.yaml --out DIR`` runs)::
@@ -29,7 +30,15 @@ session.yaml --out DIR`` runs)::
       - {direction: [-0.3, -0.2, -0.93], intensity: 1.0}
     capture:
       frames_per_light: 4
-      exposure_bracket: [5000, 10000, 20000, 40000]   # optional, µs
+      exposure_bracket: [5000, 10000, 20000, 40000]   # optional, µs: pick ONE per light (auto-exposure)
+      # exposures_us: [8000, 1000, 125]   # optional, µs: take EVERY one per light (HDR brackets)
+
+Two ways to use several exposures: ``exposure_bracket`` *chooses* one exposure per light (the
+longest with fewer than 0.1 % saturated pixels; the light's ``intensity`` is scaled by its exposure)
+and writes format 1; ``exposures_us`` *takes* every exposure under every light (the first is the
+reference exposure) and writes format 2 (``frames/NNN.png`` at the reference, ``frames/NNN_bJ.png``
+for the J-th other exposure), which preprocessing merges into one radiance per site
+(:mod:`polarshape.recover.hdr`). They exclude each other.
 """
 
 from __future__ import annotations
@@ -51,7 +60,7 @@ from polarshape.acquisition.lights import LightRig, RigLight
 from polarshape.errors import CaptureError, ConfigError
 from polarshape.imaging.pixels import PIXEL_FORMATS, bayer_of
 from polarshape.io.atomic import OutputExistsError, atomic_path, atomic_write_text
-from polarshape.io.capture import CAPTURE_FORMAT, Distortion, IntrinsicsSpec, LightSpec, MosaicSpec, Projection
+from polarshape.io.capture import CAPTURE_FORMAT, CAPTURE_FORMAT_BRACKETS, Distortion, IntrinsicsSpec, LightSpec, MosaicSpec, Projection
 from polarshape.io.yamlfile import load_yaml
 
 logger = logging.getLogger(__name__)
@@ -106,13 +115,21 @@ def _write_png(path: Path, image: np.ndarray, bit_depth: int, *, overwrite: bool
             raise OSError(f"could not encode {path} as PNG")
 
 
+def _bracket_png(index: int, j: int) -> str:
+    """File name of light ``index``'s frame at the ``j``-th exposure of ``exposures_us`` (0: the reference)."""
+    return f"{index:03d}.png" if j == 0 else f"{index:03d}_b{j}.png"
+
+
 def _light_done(frames_dir: Path, index: int) -> dict[str, Any] | None:
     png, meta = frames_dir / f"{index:03d}.png", frames_dir / f"{index:03d}.json"
     if png.exists() and meta.exists():
         try:
-            return json.loads(meta.read_text(encoding="utf-8"))
+            done = json.loads(meta.read_text(encoding="utf-8"))
         except (OSError, ValueError):
             return None
+        brackets = done.get("brackets", []) if isinstance(done, dict) else []
+        if all((frames_dir / b.get("frame", "")).is_file() for b in brackets):  # the JSON is written last
+            return done
     return None
 
 
@@ -152,10 +169,11 @@ SESSION_FILE = "session.json"
 
 
 def session_identity(rig: LightRig, *, frames_per_light: int, exposure_bracket: Sequence[float] | None,
-                     settings: Mapping[str, Any] | None = None) -> dict[str, Any]:
+                     settings: Mapping[str, Any] | None = None,
+                     exposures_us: Sequence[float] | None = None) -> dict[str, Any]:
     """The settings that make frames of one session comparable: the lights (direction or position,
-    intensity), frames per light, the exposure bracket, and the camera ``settings`` given (pixel
-    format, exposure, gain, ROI; None values left out)."""
+    intensity), frames per light, the exposure bracket, the exposures taken per light, and the
+    camera ``settings`` given (pixel format, exposure, gain, ROI; None values left out)."""
     lights = []
     for light in rig.lights:
         entry: dict[str, Any] = {"intensity": float(light.intensity)}
@@ -166,8 +184,11 @@ def session_identity(rig: LightRig, *, frames_per_light: int, exposure_bracket: 
         lights.append(entry)
     camera = {k: (list(v) if isinstance(v, (list, tuple)) else v) for k, v in (settings or {}).items() if v is not None}
     bracket = None if exposure_bracket is None else [float(e) for e in exposure_bracket]
-    return {"lights": lights, "frames_per_light": int(frames_per_light), "exposure_bracket": bracket,
-            "camera": camera}
+    identity = {"lights": lights, "frames_per_light": int(frames_per_light), "exposure_bracket": bracket,
+                "camera": camera}
+    if exposures_us is not None:  # (absent otherwise: session.json of earlier versions stays comparable)
+        identity["exposures_us"] = [float(e) for e in exposures_us]
+    return identity
 
 
 def _identity_difference(stored: Mapping[str, Any], current: Mapping[str, Any]) -> str | None:
@@ -177,9 +198,9 @@ def _identity_difference(stored: Mapping[str, Any], current: Mapping[str, Any]) 
     for i, (a, b) in enumerate(zip(stored["lights"], current["lights"])):
         if a != b:
             return f"lights[{i}]: {a} on disk, {b} in this session"
-    for key in ("frames_per_light", "exposure_bracket"):
-        if stored.get(key) != current[key]:
-            return f"capture.{key}: {stored.get(key)} on disk, {current[key]} in this session"
+    for key in ("frames_per_light", "exposure_bracket", "exposures_us"):
+        if stored.get(key) != current.get(key):
+            return f"capture.{key}: {stored.get(key)} on disk, {current.get(key)} in this session"
     keys = sorted(set(stored.get("camera", {})) | set(current["camera"]))
     for key in keys:
         a, b = stored.get("camera", {}).get(key), current["camera"].get(key)
@@ -253,6 +274,7 @@ def run_capture_session(
     *,
     frames_per_light: int = 1,
     exposure_bracket: Sequence[float] | None = None,
+    exposures_us: Sequence[float] | None = None,
     resume: bool = True,
     camera_info: Mapping[str, Any] | None = None,
     settings: Mapping[str, Any] | None = None,
@@ -278,6 +300,10 @@ def run_capture_session(
             resuming, refused otherwise).
         frames_per_light: frames averaged per light (>= 1).
         exposure_bracket: candidate exposure times in µs, or None to keep the camera's.
+        exposures_us: exposure times (µs) to take EVERY one of under each light (HDR brackets; the
+            first is the reference exposure), each averaged over ``frames_per_light`` frames and
+            saved as ``frames/NNN.png`` (reference) and ``frames/NNN_bJ.png``; capture.yaml is then
+            format 2. Excludes ``exposure_bracket``.
         resume: skip lights already on disk (otherwise existing frames are an error).
         camera_info: extra keys of capture.yaml's ``camera`` block (``projection``,
             ``intrinsics``, ``distortion``, ``model``, ``black_level``, ``mosaic``).
@@ -295,6 +321,11 @@ def run_capture_session(
         raise ValueError(f"frames_per_light must be >= 1; got {frames_per_light}")
     if exposure_bracket is not None and (not exposure_bracket or min(exposure_bracket) <= 0):
         raise ValueError(f"exposure_bracket must be a non-empty list of positive µs values; got {exposure_bracket}")
+    if exposures_us is not None:
+        _check_exposures(exposures_us)
+        if exposure_bracket is not None:
+            raise ValueError("capture.exposure_bracket (pick one exposure per light) and capture.exposures_us (take "
+                             "every exposure per light) exclude each other: keep one")
     info = dict(camera_info or {})
     if info.get("projection") == "perspective" and not info.get("intrinsics"):
         raise ValueError("camera projection 'perspective' needs intrinsics {fx, fy, cx, cy} (raw-mosaic pixels): run "
@@ -314,7 +345,7 @@ def run_capture_session(
         raise OutputExistsError(f"{capture_yaml} already exists; choose another --out folder")
     refuse_capture_destination(out, resume=resume)
     identity = session_identity(rig, frames_per_light=frames_per_light, exposure_bracket=exposure_bracket,
-                                settings=settings)
+                                settings=settings, exposures_us=exposures_us)
     if not (resume and _check_resume(frames_dir, identity, n)):
         frames_dir.mkdir(parents=True, exist_ok=True)
         atomic_write_text(frames_dir / SESSION_FILE, json.dumps(identity, indent=1), overwrite=True)
@@ -329,10 +360,22 @@ def run_capture_session(
             metadata.append(done)
             continue
         rig.switch(index)
+        brackets: list[dict[str, Any]] = []
+        for j, exposure in enumerate(exposures_us or ()):
+            if j == 0:
+                continue  # the reference exposure: taken last, below, so the camera ends at it
+            camera.configure(exposure_us=float(exposure))
+            frames = [camera.capture(timeout_s=timeout_s) for _ in range(frames_per_light)]
+            name = _bracket_png(index, j)
+            bracket_meta = _frame_metadata(frames, {"frame": name})
+            _write_png(frames_dir / name, average_frames(frames), bracket_meta["bit_depth"], overwrite=True)
+            brackets.append(bracket_meta)
+        if exposures_us:
+            camera.configure(exposure_us=float(exposures_us[0]))
         frames, info = _capture_light(camera, frames_per_light=frames_per_light, bracket=exposure_bracket,
                                       saturation_limit=saturation_limit, timeout_s=timeout_s)
         image = average_frames(frames)  # (H, W) uint16
-        meta = _frame_metadata(frames, {"light_index": index, **info})
+        meta = _frame_metadata(frames, {"light_index": index, **info, **({"brackets": brackets} if brackets else {})})
         png = frames_dir / f"{index:03d}.png"
         _write_png(png, image, meta["bit_depth"], overwrite=True)  # a PNG without its JSON is a leftover
         atomic_write_text(frames_dir / f"{index:03d}.json", json.dumps(meta, indent=1), overwrite=True)
@@ -341,15 +384,25 @@ def run_capture_session(
         metadata.append(meta)
     rig.all_off()
 
-    document = _capture_document(camera, rig, metadata, camera_info)
+    document = _capture_document(camera, rig, metadata, camera_info, bracketed=exposures_us is not None)
     atomic_write_text(capture_yaml, yaml.safe_dump(document, sort_keys=False))
     logger.info("wrote %s (%d lights)", capture_yaml, n)
     return capture_yaml
 
 
+def _check_exposures(exposures_us: Sequence[float]) -> None:
+    values = [float(e) for e in exposures_us]
+    if not values or not all(e > 0 and e == e and e != float("inf") for e in values):
+        raise ValueError(f"capture.exposures_us must be a non-empty list of positive exposure times in µs, e.g. "
+                         f"[8000, 1000, 125] (the first is the reference exposure); got {list(exposures_us)}")
+    if len(set(values)) != len(values):
+        raise ValueError(f"capture.exposures_us repeats an exposure time ({values}): list each once (frames_per_light "
+                         "averages repeated frames)")
+
+
 def _capture_document(camera: Camera, rig: LightRig, metadata: list[dict[str, Any]],
-                      camera_info: Mapping[str, Any] | None) -> dict[str, Any]:
-    bit_depths = {m["bit_depth"] for m in metadata}
+                      camera_info: Mapping[str, Any] | None, *, bracketed: bool = False) -> dict[str, Any]:
+    bit_depths = {m["bit_depth"] for m in metadata} | {b["bit_depth"] for m in metadata for b in m.get("brackets", [])}
     if len(bit_depths) != 1:
         raise CameraError(f"the frames of this session have different bit depths {sorted(bit_depths)}: "
                           "recapture with one pixel format")
@@ -373,8 +426,12 @@ def _capture_document(camera: Camera, rig: LightRig, metadata: list[dict[str, An
         entry.pop("name", None)
         entry["intensity"] = float(spec.intensity * meta["exposure_us"] / longest)
         entry["frame"] = f"frames/{index:03d}.png"
+        if bracketed:
+            entry["exposure_us"] = float(meta["exposure_us"])
+            entry["brackets"] = [{"frame": f"frames/{b['frame']}", "exposure_us": float(b["exposure_us"])}
+                                 for b in meta.get("brackets", [])]
         lights.append(entry)
-    return {"format": CAPTURE_FORMAT, "camera": block, "lights": lights}
+    return {"format": CAPTURE_FORMAT_BRACKETS if bracketed else CAPTURE_FORMAT, "camera": block, "lights": lights}
 
 
 # -- session files --------------------------------------------------------------------------------
@@ -449,7 +506,19 @@ class CaptureSection(_Strict):
 
     frames_per_light: int = Field(1, ge=1)
     exposure_bracket: list[float] | None = None
+    #: HDR brackets: take every one of these exposures (µs) under each light, the first the reference
+    #: (capture format 2); excludes ``exposure_bracket``.
+    exposures_us: list[float] | None = None
     timeout_s: float = Field(5.0, gt=0)
+
+    @model_validator(mode="after")
+    def _check(self) -> CaptureSection:
+        if self.exposures_us is not None:
+            _check_exposures(self.exposures_us)
+            if self.exposure_bracket is not None:
+                raise ValueError("capture.exposure_bracket (pick one exposure per light) and capture.exposures_us (take "
+                                 "every exposure per light) exclude each other: keep one")
+        return self
 
 
 class SessionConfig(_Strict):
@@ -558,7 +627,8 @@ def capture_session(
             info["distortion"] = list(cam_cfg.distortion)
         return run_capture_session(
             camera, rig, out_dir, frames_per_light=config.capture.frames_per_light,
-            exposure_bracket=config.capture.exposure_bracket, resume=resume, camera_info=info,
+            exposure_bracket=config.capture.exposure_bracket, exposures_us=config.capture.exposures_us,
+            resume=resume, camera_info=info,
             settings={"pixel_format": cam_cfg.pixel_format, "exposure_us": cam_cfg.exposure_us,
                       "gain_db": cam_cfg.gain_db, "roi": cam_cfg.roi},
             timeout_s=config.capture.timeout_s,

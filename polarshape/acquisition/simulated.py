@@ -36,7 +36,7 @@ from polarshape.imaging.pixels import max_count
 from polarshape.io.atomic import OutputExistsError, atomic_directory
 from polarshape.io.images import write_image
 from polarshape.io.polarimetric import write_polarimetric_calibration
-from polarshape.io.capture import CAPTURE_FORMAT, Capture, parse_capture_spec, write_capture
+from polarshape.io.capture import CAPTURE_FORMAT, CAPTURE_FORMAT_BRACKETS, Capture, parse_capture_spec, write_capture
 from polarshape.lights import light_to_dict
 from polarshape.scene.render import (
     albedo_scale_map,
@@ -76,7 +76,7 @@ class SimulatedCamera:
         self.defects = self.config.sensor.to_defects()  # the real sensor's imperfections (ideal by default)
         self.layout = self.config.camera.mosaic.to_layout()
         self.bayer = self.config.camera.mosaic.bayer  # colour polarisation sensor, or None (mono)
-        self.exposure_us = float(self.config.camera.exposure_us)
+        self.exposure_us = float(self.config.camera.reference_exposure_us)
         self.gain_db = float(self.config.camera.gain_db)
         self.pixel_format = self.config.camera.pixel_format
         self.light_index = 0
@@ -380,7 +380,9 @@ class SimulatedCamera:
         return torch.where(mask[..., None], sp, torch.full_like(sp, math.nan))
 
     def render_capture(self, out_dir: str | Path | None = None, *, overwrite: bool = False, progress: bool = True) -> Capture:
-        """Capture one frame per light with the current settings, plus ground truth.
+        """Capture one frame per light with the current settings, plus ground truth; with the scene's
+        ``camera.exposures_us`` one frame per light and exposure (a format-2 capture whose reference
+        exposure is the first of them; the camera's exposure is restored afterwards).
 
         Args:
             out_dir: if given, the capture folder to write (atomically; refuses an existing
@@ -398,22 +400,34 @@ class SimulatedCamera:
         opened_here = self._scene is None
         if opened_here:
             self.open()
+        exposures = self.config.camera.exposures_us
+        saved = self.exposure_us
         try:
-            frames = []
+            frames: list[list[Frame]] = []
             for index in tqdm(range(len(self.config.lights)), desc="lights", unit="light", disable=not progress):
                 self.set_light(index)
-                frames.append(self.capture())
-            capture = self._make_capture(frames)
+                if exposures is None:
+                    frames.append([self.capture()])
+                    continue
+                bracket = []
+                for exposure in exposures:
+                    self.configure(exposure_us=exposure)
+                    bracket.append(self.capture())
+                frames.append(bracket)
+            capture = self._make_capture(frames, bracketed=exposures is not None)
         finally:
+            self.exposure_us = saved
             if opened_here:
                 self.close()
         if out_dir is not None:
             write_capture(out_dir, capture, overwrite=overwrite)
         return capture
 
-    def _make_capture(self, frames: list[Frame]) -> Capture:
-        """Assemble the :class:`Capture` of one frame per light (all with the same settings)."""
-        bit_depth = frames[0].bit_depth
+    def _make_capture(self, frames: list[list[Frame]], *, bracketed: bool = False) -> Capture:
+        """Assemble the :class:`Capture` of the frames of each light (one, or one per exposure of the
+        bracket when ``bracketed``: format 2, ``frames/NNN.png`` at the reference exposure and
+        ``frames/NNN_bJ.png`` for bracket J)."""
+        bit_depth = frames[0][0].bit_depth
         camera: dict[str, Any] = {
             "model": self.config.camera.model,
             "projection": self.config.camera.projection,
@@ -427,20 +441,27 @@ class SimulatedCamera:
         for k, light in enumerate(self.scene.lights):
             entry = light_to_dict(light)
             entry["frame"] = f"frames/{k:03d}.png"
+            if bracketed:
+                entry["exposure_us"] = frames[k][0].exposure_us
+                entry["brackets"] = [{"frame": f"frames/{k:03d}_b{j}.png", "exposure_us": f.exposure_us}
+                                     for j, f in enumerate(frames[k][1:], start=1)]
             lights.append(entry)
-        spec = parse_capture_spec({"format": CAPTURE_FORMAT, "camera": camera, "lights": lights}, "simulated capture.yaml")
+        fmt = CAPTURE_FORMAT_BRACKETS if bracketed else CAPTURE_FORMAT
+        spec = parse_capture_spec({"format": fmt, "camera": camera, "lights": lights}, "simulated capture.yaml")
         truth = self.ground_truth()
         provenance = {
             "simulator": "polarshape SimulatedCamera",
             "seed": self.seed,
-            "exposure_us": self.exposure_us,
+            "exposure_us": frames[0][0].exposure_us,
             "gain_db": self.gain_db,
             "pixel_format": self.pixel_format,
             "scene": self.config.model_dump(mode="json"),
         }
         return Capture(
             spec=spec,
-            frames=np.stack([f.image.astype(np.uint16) for f in frames]),
+            frames=np.stack([light[0].image.astype(np.uint16) for light in frames]),
+            brackets=(np.stack([[f.image.astype(np.uint16) for f in light[1:]] for light in frames])
+                      if bracketed and len(frames[0]) > 1 else None),
             mask=truth["mask"],
             ground_truth={"normals": truth["normals"], "depth": truth["depth"], "scene": provenance,
                           **({"albedo_rgb": truth["albedo_rgb"]} if "albedo_rgb" in truth else {}),

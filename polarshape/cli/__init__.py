@@ -88,7 +88,8 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
         out, capture.num_lights, capture.frames.shape[2], capture.frames.shape[1], capture.bit_depth,
         int(mask.sum()) if mask is not None else 0,
     )
-    print(f"wrote {out} ({capture.num_lights} frames)")  # the one-line result, with -q too
+    bracket = f" × {capture.spec.bracket_size} exposures" if capture.has_brackets else ""
+    print(f"wrote {out} ({capture.num_lights} frames{bracket})")  # the one-line result, with -q too
     return 0
 
 

@@ -5,6 +5,7 @@
     my_capture/
       capture.yaml        format, camera, lights (validated by :class:`CaptureSpec`)
       frames/000.png …    one raw mosaic per light, 8/16-bit PNG or TIFF, low-bit aligned counts
+                          (format 2: several exposures per light, each frame with its exposure_us)
       mask.png            optional object mask (non-zero = object), mosaic or super-pixel size
       ground_truth/       optional: normals.npy, depth.npy, any other *.npy / *.json
 
@@ -41,6 +42,8 @@ logger = logging.getLogger(__name__)
 
 __all__ = [
     "CAPTURE_FORMAT",
+    "CAPTURE_FORMAT_BRACKETS",
+    "BracketFrameSpec",
     "CameraSpec",
     "Capture",
     "CaptureError",
@@ -57,8 +60,12 @@ __all__ = [
     "write_capture",
 ]
 
-#: Version string of the capture format this module reads and writes.
+#: Version string of the capture format with one frame per light (read and written).
 CAPTURE_FORMAT = "polarshape-capture/1"
+#: Version 2: each light may hold several exposures (``exposure_us`` and ``brackets``); read and
+#: written (only for captures that use it: one frame per light is written as version 1).
+CAPTURE_FORMAT_BRACKETS = "polarshape-capture/2"
+CAPTURE_FORMATS = (CAPTURE_FORMAT, CAPTURE_FORMAT_BRACKETS)
 CAPTURE_YAML = "capture.yaml"
 MASK_FILE = "mask.png"
 GROUND_TRUTH_DIR = "ground_truth"
@@ -221,10 +228,49 @@ class LightSpec(_Strict):
         return light_from_dict(self.model_dump(include={"direction", "position", "intensity"}, exclude_none=True))
 
 
-class CaptureLightSpec(LightSpec):
-    """One light of ``capture.yaml`` and the frame recorded under it; ``direction`` is a unit vector."""
+def _check_frame_path(v: str) -> str:
+    p = PurePosixPath(v)
+    if not v or p.is_absolute() or ".." in p.parts or "\\" in v:
+        raise ValueError(f"must be a relative path inside the capture folder, e.g. frames/000.png; got {v!r}")
+    if p.suffix.lower() not in IMAGE_SUFFIXES:
+        raise ValueError(f"must be a {'/'.join(IMAGE_SUFFIXES)} file (lossless); got {v!r}")
+    return v
+
+
+def _check_exposure(v: float) -> float:
+    if not (math.isfinite(v) and v > 0):
+        raise ValueError(f"must be a positive exposure time in microseconds (e.g. 8000); got {v!r}")
+    return v
+
+
+class BracketFrameSpec(_Strict):
+    """One more exposure of a light (format 2): the frame and its exposure time in µs."""
 
     frame: str
+    exposure_us: float
+
+    @field_validator("frame")
+    @classmethod
+    def _frame(cls, v: str) -> str:
+        return _check_frame_path(v)
+
+    @field_validator("exposure_us")
+    @classmethod
+    def _exposure(cls, v: float) -> float:
+        return _check_exposure(v)
+
+
+class CaptureLightSpec(LightSpec):
+    """One light of ``capture.yaml`` and the frame recorded under it; ``direction`` is a unit vector.
+
+    Format 2 (:data:`CAPTURE_FORMAT_BRACKETS`) adds ``exposure_us``, the exposure time of ``frame``
+    (the light's reference exposure: preprocessing expresses the merged radiance in fractions of full
+    scale at it, and ``intensity`` is as seen at it), and ``brackets``, the same light at other exposures.
+    """
+
+    frame: str
+    exposure_us: float | None = None
+    brackets: tuple[BracketFrameSpec, ...] = ()
 
     @field_validator("direction")
     @classmethod
@@ -239,30 +285,89 @@ class CaptureLightSpec(LightSpec):
     @field_validator("frame")
     @classmethod
     def _frame(cls, v: str) -> str:
-        p = PurePosixPath(v)
-        if not v or p.is_absolute() or ".." in p.parts or "\\" in v:
-            raise ValueError(f"must be a relative path inside the capture folder, e.g. frames/000.png; got {v!r}")
-        if p.suffix.lower() not in IMAGE_SUFFIXES:
-            raise ValueError(f"must be a {'/'.join(IMAGE_SUFFIXES)} file (lossless); got {v!r}")
-        return v
+        return _check_frame_path(v)
+
+    @field_validator("exposure_us")
+    @classmethod
+    def _exposure(cls, v: float | None) -> float | None:
+        return None if v is None else _check_exposure(v)
+
+    @model_validator(mode="after")
+    def _bracket(self) -> CaptureLightSpec:
+        if self.brackets and self.exposure_us is None:
+            raise ValueError("brackets need exposure_us: the exposure time (µs) of frame, the light's reference exposure")
+        seen = {self.exposure_us: "frame"}
+        for j, b in enumerate(self.brackets):
+            if b.exposure_us in seen:
+                raise ValueError(
+                    f"brackets[{j}].exposure_us {b.exposure_us:g} is also the exposure of {seen[b.exposure_us]}: each "
+                    "frame of a light needs its own exposure time (average repeated frames of one exposure into one "
+                    "frame, or fix the exposure_us that is wrong)")
+            seen[b.exposure_us] = f"brackets[{j}]"
+        return self
+
+    def frame_paths(self) -> list[str]:
+        """The light's frames: ``frame`` (the reference exposure), then its brackets' in order."""
+        return [self.frame, *(b.frame for b in self.brackets)]
+
+    def exposures(self) -> list[float] | None:
+        """Exposure times (µs) of :meth:`frame_paths`, or None when ``exposure_us`` is not given."""
+        return None if self.exposure_us is None else [self.exposure_us, *(b.exposure_us for b in self.brackets)]
 
 
 class CaptureSpec(_Strict):
     """The content of ``capture.yaml``."""
 
-    format: Literal["polarshape-capture/1"]
+    format: Literal["polarshape-capture/1", "polarshape-capture/2"]
     camera: CameraSpec
     lights: tuple[CaptureLightSpec, ...] = Field(min_length=1)
 
     @model_validator(mode="after")
     def _unique_frames(self) -> CaptureSpec:
-        seen: dict[str, int] = {}
+        seen: dict[str, str] = {}
         for k, light in enumerate(self.lights):
-            key = light.frame.lower()
-            if key in seen:
-                raise ValueError(f"lights[{k}].frame {light.frame!r} is also the frame of lights[{seen[key]}]")
-            seen[key] = k
+            names = [f"lights[{k}].frame"] + [f"lights[{k}].brackets[{j}].frame" for j in range(len(light.brackets))]
+            for name, frame in zip(names, light.frame_paths()):
+                key = frame.lower()
+                if key in seen:
+                    raise ValueError(f"{name} {frame!r} is also the frame of {seen[key]}: give every frame its own file")
+                seen[key] = name
         return self
+
+    @model_validator(mode="after")
+    def _brackets(self) -> CaptureSpec:
+        if self.format == CAPTURE_FORMAT:
+            for k, light in enumerate(self.lights):
+                if light.exposure_us is not None or light.brackets:
+                    raise ValueError(
+                        f"lights[{k}] has exposure_us/brackets (several exposures per light), which need format "
+                        f"{CAPTURE_FORMAT_BRACKETS!r}: change the format line of capture.yaml")
+            return self
+        for k, light in enumerate(self.lights):
+            if light.exposure_us is None:
+                raise ValueError(
+                    f"lights[{k}].exposure_us is required by format {CAPTURE_FORMAT_BRACKETS!r}: the exposure time "
+                    f"(µs) of lights[{k}].frame {light.frame!r}")
+        counts = [len(light.brackets) for light in self.lights]
+        for k, n in enumerate(counts):
+            if n != counts[0]:
+                raise ValueError(
+                    f"lights[{k}] has {n + 1} exposure(s) (frame and {n} brackets) but lights[0] has {counts[0] + 1}: "
+                    "every light needs the same number of exposures; capture the missing ones or drop the extra "
+                    "brackets")
+        return self
+
+    @property
+    def bracket_size(self) -> int:
+        """Frames per light (1 in format 1)."""
+        return 1 + len(self.lights[0].brackets)
+
+    @property
+    def exposures_us(self) -> np.ndarray | None:
+        """(K, B) exposure times (µs) of every light's frames (reference first), or None in format 1."""
+        if self.format == CAPTURE_FORMAT:
+            return None
+        return np.array([light.exposures() for light in self.lights], dtype=np.float64)
 
 
 def _format_validation_error(source: str, err: ValidationError) -> str:
@@ -278,7 +383,7 @@ def _format_validation_error(source: str, err: ValidationError) -> str:
         elif e["type"] == "missing":
             hint = " (required field: add it)"
         elif e["type"] == "literal_error" and loc == "format":
-            hint = f" (this polarshape reads {CAPTURE_FORMAT!r})"
+            hint = f" (this polarshape reads {CAPTURE_FORMAT!r} and {CAPTURE_FORMAT_BRACKETS!r})"
         got = "" if "; got " in msg or e["type"] == "missing" else f"; got {e.get('input')!r}"  # once
         lines.append(f"  - {loc or '(top level)'}: {msg}{hint}{got}"[:600])
     return "\n".join(lines)
@@ -309,6 +414,8 @@ class Capture:
             float camera-frame unit normals; ``*.npy`` files give arrays, ``*.json`` files
             give the parsed JSON.
         root: the folder it was loaded from, if any.
+        brackets: (K, B − 1, H, W) the other exposures of each light (format 2), in the order of its
+            ``brackets`` (same dtype as ``frames``); None when every light has one frame.
     """
 
     spec: CaptureSpec
@@ -316,6 +423,18 @@ class Capture:
     mask: np.ndarray | None = None
     ground_truth: dict[str, Any] = field(default_factory=dict)
     root: Path | None = None
+    brackets: np.ndarray | None = None
+
+    @property
+    def has_brackets(self) -> bool:
+        """Whether the lights hold more than one exposure each."""
+        return self.spec.bracket_size > 1
+
+    def bracket(self, k: int) -> np.ndarray:
+        """(B, H, W) every frame of light ``k``, its reference exposure first (the brackets after)."""
+        if self.brackets is None:
+            return self.frames[k : k + 1]
+        return np.concatenate([self.frames[k : k + 1], self.brackets[k]])
 
     @property
     def layout(self) -> MosaicLayout:
@@ -413,6 +532,7 @@ def _check_capture(capture: Capture) -> None:
     _check_frames(capture.spec, capture.frames, "Capture.frames")
     _check_counts(capture.frames, capture.bit_depth, "Capture.frames")
     h, w = capture.frames.shape[1:]
+    _check_brackets(capture)
     if capture.mask is not None:
         m = capture.mask
         if not isinstance(m, np.ndarray) or m.shape != (h // 2, w // 2):
@@ -425,6 +545,23 @@ def _check_capture(capture: Capture) -> None:
             raise CaptureError(f"Capture.ground_truth key {name!r} must be a plain file stem, e.g. 'normals'")
         if isinstance(value, np.ndarray) and value.dtype == object:
             raise CaptureError(f"Capture.ground_truth[{name!r}] is an object array; store numeric arrays only")
+
+
+def _check_brackets(capture: Capture) -> None:
+    """Capture.brackets against the spec's brackets (raises CaptureError)."""
+    k, h, w = capture.frames.shape
+    extra = capture.spec.bracket_size - 1
+    b = capture.brackets
+    if b is None or (isinstance(b, np.ndarray) and b.ndim == 4 and b.shape[1] == 0):
+        if extra:
+            raise CaptureError(f"Capture.brackets is missing: the spec lists {extra} bracket frame(s) per light; give "
+                               f"a ({k}, {extra}, {h}, {w}) array")
+        return
+    if not isinstance(b, np.ndarray) or b.shape != (k, extra, h, w) or b.dtype != capture.frames.dtype:
+        raise CaptureError(
+            f"Capture.brackets must be a ({k}, {extra}, {h}, {w}) {capture.frames.dtype} array (the spec's brackets of "
+            f"each light, frames' size); got {getattr(b, 'shape', type(b).__name__)} {getattr(b, 'dtype', '')}")
+    _check_counts(b, capture.bit_depth, "Capture.brackets")
 
 
 # --- load --------------------------------------------------------------------------------------
@@ -497,15 +634,17 @@ def set_light_directions(doc: dict[str, Any], directions: np.ndarray) -> None:
         entry["direction"] = [float(c) for c in direction]
 
 
-def _read_frame(root: Path, k: int, light: CaptureLightSpec, bit_depth: int) -> np.ndarray:
-    path = root / light.frame
-    where = f"{path} (lights[{k}].frame in {CAPTURE_YAML})"
+def _read_frame(root: Path, k: int, light: CaptureLightSpec, bit_depth: int, j: int = 0) -> np.ndarray:
+    """Frame ``j`` of light ``k`` (0: ``frame``, j ≥ 1: ``brackets[j − 1]``)."""
+    key = f"lights[{k}].frame" if j == 0 else f"lights[{k}].brackets[{j - 1}].frame"
+    path = root / light.frame_paths()[j]
+    where = f"{path} ({key} in {CAPTURE_YAML})"
     if not path.is_file():
-        raise CaptureError(f"{where}: file not found; add the frame or fix lights[{k}].frame")
+        raise CaptureError(f"{where}: file not found; add the frame or fix {key}")
     try:
         image = read_image(path)
     except ImageError as err:
-        raise CaptureError(f"{err} (lights[{k}].frame)") from None
+        raise CaptureError(f"{err} ({key})") from None
     if image.dtype == np.uint8 and bit_depth > 8:
         raise CaptureError(
             f"{where}: is an 8-bit image but camera.bit_depth is {bit_depth}: 8 bits cannot hold {bit_depth}-bit "
@@ -568,18 +707,25 @@ def load_capture(path: str | os.PathLike[str]) -> Capture:
     yaml_path = root / CAPTURE_YAML
     spec = parse_capture_spec(_read_yaml(yaml_path), str(yaml_path))
     bit_depth = spec.camera.bit_depth
-    images = [_read_frame(root, k, light, bit_depth) for k, light in enumerate(spec.lights)]
-    h, w = images[0].shape
-    for k, image in enumerate(images):
-        if image.shape != (h, w):
-            raise CaptureError(
-                f"{root / spec.lights[k].frame} (lights[{k}].frame): is {image.shape[1]}×{image.shape[0]} (W×H) but "
-                f"{spec.lights[0].frame} is {w}×{h}; all frames must have the same size (same camera and ROI)"
-            )
-    frames = np.stack([image.astype(np.uint16, copy=False) for image in images])
+    nb = spec.bracket_size
+    images = [[_read_frame(root, k, light, bit_depth, j) for j in range(nb)] for k, light in enumerate(spec.lights)]
+    h, w = images[0][0].shape
+    for k, light in enumerate(spec.lights):
+        for j, image in enumerate(images[k]):
+            if image.shape != (h, w):
+                key = f"lights[{k}].frame" if j == 0 else f"lights[{k}].brackets[{j - 1}].frame"
+                raise CaptureError(
+                    f"{root / light.frame_paths()[j]} ({key}): is {image.shape[1]}×{image.shape[0]} (W×H) but "
+                    f"{spec.lights[0].frame} is {w}×{h}; all frames must have the same size (same camera and ROI)"
+                )
+    stack = np.stack([[image.astype(np.uint16, copy=False) for image in light] for light in images])  # (K, B, H, W)
+    del images
+    frames = np.ascontiguousarray(stack[:, 0])
+    brackets = np.ascontiguousarray(stack[:, 1:]) if nb > 1 else None
     _check_frames(spec, frames, str(root / spec.lights[0].frame))
     if bit_depth == 16:
-        _check_alignment(frames, str(root / "frames"))
+        _check_alignment(stack if nb > 1 else frames, str(root / "frames"))
+    del stack
     mask = None
     mask_path = root / MASK_FILE
     if mask_path.exists():
@@ -589,8 +735,10 @@ def load_capture(path: str | os.PathLike[str]) -> Capture:
             raise CaptureError(f"{err} (optional object mask; remove it or save it as a grayscale PNG)") from None
         mask = _mask_to_superpixels(mask_image, (h, w), str(mask_path))
     ground_truth = _read_ground_truth(root / GROUND_TRUTH_DIR, (h, w))
-    logger.info("loaded capture %s: %d frames of %dx%d, %d-bit", root, len(images), w, h, bit_depth)
-    return Capture(spec=spec, frames=frames, mask=mask, ground_truth=ground_truth, root=root.resolve())
+    logger.info("loaded capture %s: %d light(s) × %d exposure(s) of %dx%d, %d-bit", root, len(spec.lights), nb, w, h,
+                bit_depth)
+    return Capture(spec=spec, frames=frames, mask=mask, ground_truth=ground_truth, root=root.resolve(),
+                   brackets=brackets)
 
 
 # --- write -------------------------------------------------------------------------------------
@@ -598,6 +746,9 @@ def load_capture(path: str | os.PathLike[str]) -> Capture:
 
 def _spec_to_yaml(spec: CaptureSpec) -> str:
     data = spec.model_dump(mode="json", exclude_none=True)
+    for light in data["lights"]:
+        if not light.get("brackets"):
+            light.pop("brackets", None)  # format 1 has no such key; format 2 without brackets needs none
     return yaml.safe_dump(data, sort_keys=False, default_flow_style=None, allow_unicode=True)
 
 
@@ -614,7 +765,7 @@ def write_capture(path: str | os.PathLike[str], capture: Capture, *, overwrite: 
     """Write a capture folder atomically (nothing appears at ``path`` until it is complete).
 
     Frames are written as 16-bit images (8-bit when ``bit_depth == 8``) at the paths the lights
-    name; the mask as ``mask.png`` (super-pixel resolution, 0/255); ground-truth arrays as
+    name (format 2: every exposure of every light); the mask as ``mask.png`` (super-pixel resolution, 0/255); ground-truth arrays as
     ``ground_truth/<key>.npy`` and other values as ``ground_truth/<key>.json``.
     ``load_capture(write_capture(p, c))`` reproduces ``c`` exactly.
 
@@ -634,8 +785,9 @@ def write_capture(path: str | os.PathLike[str], capture: Capture, *, overwrite: 
     spec = capture.spec
     eight_bit = spec.camera.bit_depth == 8
     with atomic_directory(path, overwrite=overwrite, protect=_not_a_capture if overwrite else None) as tmp:
-        for light, frame in zip(spec.lights, capture.frames):
-            write_image(tmp / light.frame, frame.astype(np.uint8 if eight_bit else np.uint16))
+        for k, light in enumerate(spec.lights):
+            for name, frame in zip(light.frame_paths(), capture.bracket(k), strict=True):
+                write_image(tmp / name, frame.astype(np.uint8 if eight_bit else np.uint16))
         if capture.mask is not None:
             write_image(tmp / MASK_FILE, np.where(capture.mask, 255, 0).astype(np.uint8))
         for name, value in capture.ground_truth.items():
@@ -652,5 +804,5 @@ def write_capture(path: str | os.PathLike[str], capture: Capture, *, overwrite: 
                     ) from None
                 atomic_write_text(target.with_suffix(".json"), text)
         atomic_write_text(tmp / CAPTURE_YAML, _spec_to_yaml(spec))
-    logger.info("wrote capture %s (%d frames)", path, len(spec.lights))
+    logger.info("wrote capture %s (%d lights × %d exposures)", path, len(spec.lights), spec.bracket_size)
     return Path(path)

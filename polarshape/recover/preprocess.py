@@ -40,6 +40,12 @@ is taken (``sample_at``) and how (``demosaic``):
   of its block and of the blocks the interpolation reaches (one block further, as with
   ``bilinear``); dark is the channel mean's s0; a channel whose own s0 is dark is invalid for that
   channel only (its albedo).
+- exposure brackets (capture format 2): each light's frames are first merged into one radiance
+  mosaic in fractions of full scale at its reference exposure (:mod:`polarshape.recover.hdr`; values
+  above 1 where the reference clipped); an observation is saturated when a site is clipped in every
+  exposure, the mixed-block test uses each block's merged variance, and the noise model is fitted on
+  the blocks read at the reference exposure. One frame per light: exactly the path without brackets.
+
 - ``stokes`` (K, 3, H, W): linear Stokes (s0, s1, s2) in fractions of full scale (spec §1:
   s0 = ½ ΣI, s1 = I0 − I90, s2 = I45 − I135), **in each pixel's Stokes frame** (spec §1). A
   perspective capture stores angles in the sensor-plane convention; they are mapped back here.
@@ -78,11 +84,12 @@ from polarshape.imaging.analyser import PolarimetricCalibration, calibrated_pinv
 from polarshape.imaging.colour import bayer_reach, colour_stokes_from_mosaic, shifted_bayer
 from polarshape.imaging.demosaic import block_mean_bilinear_stokes, stokes_from_mosaic
 from polarshape.imaging.mosaic import MosaicLayout, split_mosaic
-from polarshape.imaging.pixels import counts_to_float, max_count, reduce_mask_to_superpixels, saturation_count
+from polarshape.imaging.pixels import counts_to_float, max_count, reduce_mask_to_superpixels
 from polarshape.errors import CaptureError
 from polarshape.io.capture import Capture
 from polarshape.io.polarimetric import capture_polarimetric_calibration
 from polarshape.recover.diagnose import check_observations, check_polarisation_signal
+from polarshape.recover.hdr import BracketMerger, clipped_counts
 from polarshape.recover.noise import demosaic_variance_factor, estimate_noise, site_redundancy
 from polarshape.recover.observations import ColourInputs, RecoveryInputs
 
@@ -241,8 +248,15 @@ def preprocess_capture(
     redundancy = torch.empty((k, h, w), dtype=torch.float64)  # the four-site check d (polarisation signal)
     scaled = torch.empty((k, h, w), dtype=torch.float64)  # d / √(s0 + c) (mixed blocks)
     block_s0 = torch.empty((k, h, w), dtype=torch.float64)  # the block's own s0 (noise model)
+    brackets = BracketMerger.of(capture, dark_threshold=dark_threshold, saturation_margin=saturation_margin,
+                                black_shift=None if polcal is None else polcal.black_shift)  # None: one exposure
+    reference = None if brackets is None else torch.empty((k, h, w), dtype=torch.bool)  # blocks read at the reference
     for i in range(k):
-        mosaic = counts_to_float(frames[i], bit_depth, black, dtype=torch.float64)  # (2H, 2W)
+        if brackets is None:
+            mosaic = counts_to_float(frames[i], bit_depth, black, dtype=torch.float64)  # (2H, 2W)
+        else:
+            merged = brackets.merge(i)
+            mosaic = merged.radiance
         if bayer is None:
             s, sites = _stokes_and_sites(mosaic, capture.layout, polcal, demosaic=demosaic, sample_at=sample_at)
         else:
@@ -256,10 +270,17 @@ def preprocess_capture(
         # colour: a block's own s0 is one colour's, the channel mean's s0 is what recovery sees
         dark[i] = (block_s0[i] if bayer is None else s[0]) < dark_threshold
         redundancy[i] = site_redundancy(sites)
-        scaled[i] = _scaled_redundancy(sites)
+        ignore = None if polcal is None else polcal.calibration.defects
         # colour: the Bayer interpolation reaches one block further, as the bilinear demosaic does
-        saturated[i] = _saturated(frames[i], bit_depth, saturation_margin, demosaic if bayer is None else "bilinear",
-                                  ignore=None if polcal is None else polcal.calibration.defects)
+        reach = demosaic if bayer is None else "bilinear"
+        if brackets is None:
+            scaled[i] = _scaled_redundancy(sites)
+            saturated[i] = _saturated(frames[i], bit_depth, saturation_margin, reach, ignore=ignore)
+        else:  # mixed blocks: d as a z-score of its merged variance; saturated: clipped in every exposure
+            scaled[i] = merged.redundancy_z(capture.layout, redundancy[i])
+            saturated[i] = _saturated_sites(merged.clipped, reach, ignore=ignore)
+            reference[i] = reduce_mask_to_superpixels(merged.reference_used, "all")
+            del merged
         del mosaic, s, sites
     mask = _mask(capture, ~dark & ~saturated, (h, w))
     if bayer is not None:  # at the silhouette, the channels interpolated from outside the mask leave the mean
@@ -284,7 +305,9 @@ def preprocess_capture(
         factor = demosaic_variance_factor(lambda m: superpixel_stokes(m, capture.layout, demosaic=demosaic, sample_at=sample_at)[0])
     else:
         factor = _colour_variance_factor(capture.layout, bayer)
-    noise = estimate_noise(redundancy, block_s0, valid, step=step, variance_factor=factor)
+    # with brackets: the reference exposure's noise (recover/hdr.py: what the noise model sees)
+    noise_usable = valid if reference is None else valid & reference
+    noise = estimate_noise(redundancy, block_s0, noise_usable, step=step, variance_factor=factor)
     del redundancy, block_s0
     out = RecoveryInputs(
         stokes=stokes.to(device=device, dtype=dtype),
@@ -383,10 +406,13 @@ def _stokes_and_sites(mosaic: Tensor, layout: MosaicLayout, polcal: _PolcalAppli
 def _saturated(frames: np.ndarray, bit_depth: int, margin: int, demosaic: str, *, ignore: Tensor | None = None) -> Tensor:
     """(*, H, W) bool observations of frames (*, 2H, 2W) with a site at the top count (less ``margin``);
     ``ignore`` (2H, 2W): pixels that do not count (a calibration's defects: a hot pixel stuck at the top)."""
-    top = saturation_count(bit_depth) - int(margin)
-    clipped = torch.from_numpy(frames.astype(np.int64) >= top)  # (*, 2H, 2W)
+    return _saturated_sites(clipped_counts(frames, bit_depth, margin), demosaic, ignore=ignore)
+
+
+def _saturated_sites(clipped: Tensor, demosaic: str, *, ignore: Tensor | None = None) -> Tensor:
+    """(*, H, W) bool observations with a ``clipped`` (*, 2H, 2W) site (:func:`_saturated`)."""
     if ignore is not None:
-        clipped &= ~ignore
+        clipped = clipped & ~ignore
     saturated = reduce_mask_to_superpixels(clipped, "any")  # (*, H, W)
     if demosaic == "bilinear":  # interpolation reaches one block further: so does a clipped site
         lead, hw = saturated.shape[:-2], saturated.shape[-2:]

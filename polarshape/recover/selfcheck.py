@@ -36,6 +36,15 @@ and if not, which input slip explains it? Each check issues a named warning
 - **parameter bounds** (:class:`~polarshape.errors.ParameterBoundWarning`): ior, α, β, κ within 1 %
   of :data:`polarshape.recover.reflectometry.BOUNDS` (α, β on the log scale the solver uses; κ = 0
   is the default, not a bound), k_s = 0.
+- **clipped lobe** (:class:`~polarshape.errors.ClippedLobeWarning`, :func:`clipped_lobe`): per light,
+  the observation nearest the mirror direction of the fitted normals (where the fitted lobe peaks) is
+  saturated (in every exposure, with brackets), under at least :data:`CLIPPED_CORE_FRACTION` of the
+  ≥ :data:`LOBE_CORE_MIN_LIGHTS` lights whose lobe core (half vector within max(atan α,
+  :data:`LOBE_CORE_MIN_DEG`) of the normal; the floor keeps a core when α sits at its lower bound)
+  falls on the object: α, β and k_s are then fitted to the lobe's flanks only. Measured
+  (``benchmarks/hdr_brackets.py``, a sphere α = 0.03 peaking ≈ 64× full scale, 10 lights): one
+  exposure, the peak clipped under 10 of 10 lights (bilinear and super-pixel demosaic); bracketed
+  ×1, ×1/8, ×1/64: under none.
 - **filled / frozen pixels** (:class:`~polarshape.errors.FilledPixelsWarning`,
   :class:`~polarshape.errors.FrozenPixelsWarning`): more than :data:`FILLED_FRACTION_MAX` of the mask
   filled from neighbours; more than :data:`FROZEN_FRACTION_MAX` of the FMBRDF normals within 0.05°
@@ -64,6 +73,7 @@ from torch import Tensor
 
 from polarshape.errors import (
     BitDepthWarning,
+    ClippedLobeWarning,
     ConventionWarning,
     FilledPixelsWarning,
     FitResidualWarning,
@@ -82,8 +92,8 @@ from polarshape.recover.reflectometry import BOUNDS
 logger = logging.getLogger(__name__)
 
 __all__ = [
-    "CHECK_WARNINGS", "FILLED_FRACTION_MAX", "FROZEN_FRACTION_MAX", "RESIDUAL_RATIO_MAX", "RecoveryResult",
-    "SelfChecks", "convention_scores", "frame_order", "residual_to_noise", "run_self_checks",
+    "CHECK_WARNINGS", "CLIPPED_CORE_FRACTION", "FILLED_FRACTION_MAX", "LOBE_CORE_MIN_DEG", "LOBE_CORE_MIN_LIGHTS", "FROZEN_FRACTION_MAX", "RESIDUAL_RATIO_MAX", "RecoveryResult",
+    "SelfChecks", "clipped_lobe", "convention_scores", "frame_order", "residual_to_noise", "run_self_checks",
 ]
 
 #: residual_to_noise above this: FitResidualWarning (clean ≤ 1.12 measured, failures ≥ 3.7; module docstring).
@@ -103,13 +113,19 @@ FILLED_FRACTION_MAX = 0.2
 FROZEN_FRACTION_MAX = 0.5
 #: Lambertian held-out s0 error below the FMBRDF's by more than this fraction: ModelEvidenceWarning.
 MODEL_EVIDENCE_MARGIN = 0.05
+#: The lobe's core: half vectors within max(atan α, this) degrees of the normal.
+LOBE_CORE_MIN_DEG = 2.0
+#: Fewer lights showing the lobe's core on the object than this: nothing to judge (no warning).
+LOBE_CORE_MIN_LIGHTS = 2
+#: The lobe's peak saturated under at least this fraction of the lights showing it: ClippedLobeWarning.
+CLIPPED_CORE_FRACTION = 0.9
 _BOUND_TOLERANCE = 0.01
 _CHI2_1_MEDIAN = 0.454936  # median of a χ² variable with one degree of freedom
 
 #: The warning classes the self-checks issue (and the ones issued earlier that they list).
 CHECK_WARNINGS: tuple[type[PolarshapeWarning], ...] = (
     FitResidualWarning, ConventionWarning, FrameOrderWarning, BitDepthWarning, ParameterBoundWarning,
-    FilledPixelsWarning, FrozenPixelsWarning, ModelEvidenceWarning,
+    ClippedLobeWarning, FilledPixelsWarning, FrozenPixelsWarning, ModelEvidenceWarning,
 )
 
 
@@ -146,7 +162,7 @@ class SelfChecks:
     def as_dict(self) -> dict[str, Any]:
         """params.json's ``checks``: ``warnings`` [{name, message}], ``residual_to_noise`` (robust χ² ratio,
         1 = at the noise), ``residual_to_noise_rms``, ``noise`` (the model used), ``convention``,
-        ``frame_order``, ``bounds``, ``filled_fraction``, ``frozen_fraction``, ``model_evidence``, ``seconds``."""
+        ``frame_order``, ``bounds``, ``clipped_lobe``, ``filled_fraction``, ``frozen_fraction``, ``model_evidence``, ``seconds``."""
         return {"warnings": [{"name": n, "message": m} for n, m in self.warnings], **self.measured}
 
     def _warn(self, kind: type[PolarshapeWarning], message: str) -> None:
@@ -407,6 +423,66 @@ def _check_bounds(checks: SelfChecks, result: RecoveryResult, fitted_material: b
             "outside the model"))
 
 
+def clipped_lobe(inputs: RecoveryInputs, normals: Tensor, params: Mapping[str, float]) -> dict[str, Any] | None:
+    """Where the fitted specular lobe peaks, did the capture see it saturated? (module docstring)
+
+    Per light, the lobe's core is the observations whose half vector is within θ_c = max(atan α,
+    :data:`LOBE_CORE_MIN_DEG`) of the fitted normal (in the mask, facing light and camera); a light
+    *shows* the core when it has one, and its peak (the observation nearest the mirror direction) is
+    clipped when that observation is saturated.
+
+    Args:
+        inputs: the recovery's inputs (lights, view, saturated, mask on the full grid).
+        normals: (H, W, 3) fitted unit normals.
+        params: the fitted material (``alpha``).
+
+    Returns:
+        ``{"core_deg", "core_observations", "saturated", "clipped_fraction", "lights_with_core",
+        "lights_peak_clipped"}`` (``saturated``, ``clipped_fraction``: of the core observations), or
+        None without a finite α.
+    """
+    alpha = params.get("alpha")
+    if alpha is None or not math.isfinite(alpha):
+        return None
+    n = normals.detach().to("cpu", torch.float64)  # (H, W, 3)
+    lights = inputs.lights.to("cpu", torch.float64)  # (K, H, W, 3)
+    view = inputs.view.to("cpu", torch.float64)  # (H, W, 3)
+    cos_h = (F.normalize(lights + view, dim=-1) * n).sum(-1)  # (K, H, W) cosine of the half-vector angle
+    core_deg = max(math.degrees(math.atan(max(alpha, 0.0))), LOBE_CORE_MIN_DEG)
+    front = ((lights * n).sum(-1) > 0) & ((view * n).sum(-1) > 0)
+    seen = front & inputs.mask.cpu() & torch.isfinite(n).all(-1)  # (K, H, W)
+    core = seen & (cos_h >= math.cos(math.radians(core_deg)))
+    saturated = inputs.saturated.cpu()
+    n_core, n_sat = int(core.sum()), int((core & saturated).sum())
+    shows = core.flatten(1).any(1)  # (K,)
+    peak = torch.where(seen, cos_h, torch.full_like(cos_h, -2.0)).flatten(1).argmax(1)  # (K,) nearest the mirror
+    peak_clipped = saturated.flatten(1).gather(1, peak[:, None])[:, 0] & shows
+    return {"core_deg": core_deg, "core_observations": n_core, "saturated": n_sat,
+            "clipped_fraction": n_sat / n_core if n_core else None, "lights_with_core": int(shows.sum()),
+            "lights_peak_clipped": int(peak_clipped.sum())}
+
+
+def _check_clipped_lobe(checks: SelfChecks, inputs: RecoveryInputs, result: RecoveryResult,
+                        fitted_material: bool) -> None:
+    if result.model != "fmbrdf" or not fitted_material:
+        checks.measured["clipped_lobe"] = None
+        return
+    lobe = clipped_lobe(inputs, result.normals, result.params)
+    checks.measured["clipped_lobe"] = lobe
+    if lobe is None or lobe["lights_with_core"] < LOBE_CORE_MIN_LIGHTS:
+        return
+    if lobe["lights_peak_clipped"] >= CLIPPED_CORE_FRACTION * lobe["lights_with_core"]:
+        p = result.params
+        checks._warn(ClippedLobeWarning, (
+            f"the specular lobe's core is clipped: where the fitted lobe peaks the observation is saturated (in every "
+            f"exposure) under {lobe['lights_peak_clipped']} of the {lobe['lights_with_core']} lights that show it "
+            f"({lobe['saturated']} of {lobe['core_observations']} observations within {lobe['core_deg']:.1f}° of the "
+            f"mirror direction), so the fitted α {p.get('alpha', math.nan):.3g}, β {p.get('beta', math.nan):.3g} and "
+            f"k_s {p.get('k_s', math.nan):.3g} are not identified (the fit sees only the lobe's flanks): capture "
+            "exposure brackets (exposures_us in the session's capture section or the scene's camera; capture format "
+            "2) or expose shorter"))
+
+
 def _check_pixels(checks: SelfChecks, result: RecoveryResult) -> None:
     mask = result.mask.cpu()
     n_mask = max(int(mask.sum()), 1)
@@ -480,6 +556,7 @@ def run_self_checks(capture: Capture, inputs: RecoveryInputs, result: RecoveryRe
     _check_convention(checks, capture, inputs, result)
     _check_frame_order(checks, capture, inputs)
     _check_bounds(checks, result, fitted_material)
+    _check_clipped_lobe(checks, inputs, result, fitted_material)
     _check_pixels(checks, result)
     _check_model_evidence(checks, result, validation)
     checks.measured["seconds"] = time.perf_counter() - t0

@@ -71,7 +71,21 @@ class CameraConfig(_Strict):
     mosaic: MosaicSpec = MosaicSpec()
     pixel_format: str = "PolarizeMono12"
     exposure_us: float = Field(10000.0, gt=0)
+    #: Exposure brackets: every light is captured at each of these exposures (µs), the first being the
+    #: reference exposure (``exposure_us``); the capture is written in format 2. None = one exposure.
+    exposures_us: tuple[float, ...] | None = Field(None, min_length=1)
     gain_db: float = 0.0
+
+    @field_validator("exposures_us")
+    @classmethod
+    def _brackets(cls, v: tuple[float, ...] | None) -> tuple[float, ...] | None:
+        if v is None:
+            return v
+        if not all(math.isfinite(e) and e > 0 for e in v):
+            raise ValueError(f"must be positive exposure times in µs, e.g. [8000, 1000, 125]; got {list(v)}")
+        if len(set(v)) != len(v):
+            raise ValueError(f"must not repeat an exposure time (each is one frame per light); got {list(v)}")
+        return v
 
     @field_validator("pixel_format")
     @classmethod
@@ -92,7 +106,16 @@ class CameraConfig(_Strict):
             raise ValueError("an orthographic camera needs camera.pixel_size_m (metres per raw pixel)")
         if self.projection == "perspective" and self.intrinsics is None:
             raise ValueError("a perspective camera needs camera.intrinsics {fx, fy, cx, cy} (raw-mosaic pixels)")
+        if self.exposures_us is not None and "exposure_us" in self.model_fields_set and \
+                self.exposure_us != self.exposures_us[0]:
+            raise ValueError(f"camera.exposure_us {self.exposure_us:g} differs from the first of camera.exposures_us "
+                             f"{list(self.exposures_us)} (the reference exposure): drop exposure_us or make them agree")
         return self
+
+    @property
+    def reference_exposure_us(self) -> float:
+        """The exposure frames are taken at (the first of ``exposures_us`` when bracketing)."""
+        return self.exposures_us[0] if self.exposures_us is not None else self.exposure_us
 
     def to_camera(self) -> Camera:
         if self.projection == "orthographic":

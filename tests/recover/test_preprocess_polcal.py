@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
 
@@ -96,3 +97,37 @@ def test_missing_or_mismatched_calibration(tmp_path: Path) -> None:
     capture = _capture(tmp_path / "c", sensor, reference=str(tmp_path / "small.npz"))
     with pytest.raises(CaptureError, match="camera.polarimetric_calibration.*8×8"):
         preprocess_capture(capture, polarisation_check=False)
+
+
+def test_calibrated_exposure_brackets_merge_before_the_analysers(tmp_path: Path) -> None:
+    """Format 2 with a calibration: each frame loses its per-pixel black level before merging, so the
+    merged Stokes vectors are the truth at the reference exposure, also where the reference clipped."""
+    sensor = _sensor(defects=[(4, 4)])
+    g = torch.Generator().manual_seed(1)  # a black level varying by ±40 counts: a misplaced shift shows
+    sensor = dataclasses.replace(sensor, black_level=BLACK + torch.randint(-40, 41, (H2, W2), generator=g).double())
+    truth = _truth(4) * 4.0  # s0 1.2–2.4 of the reference's full scale: clipped at the reference
+    ratios = (1.0, 0.25, 0.0625)
+    frames = []
+    for r in ratios:
+        full = (truth * r).repeat_interleave(2, -1).repeat_interleave(2, -2)
+        counts = sensor.black_level + analysed_intensity(full, sensor.angle_rad, sensor.diattenuation, sensor.gain) * (TOP - BLACK)
+        counts = torch.where(sensor.defects, torch.full_like(counts, TOP), counts)
+        frames.append(np.clip(np.rint(counts.numpy()), 0, TOP).astype(np.uint16))
+    spec = CaptureSpec.model_validate({
+        "format": "polarshape-capture/2",
+        "camera": {"projection": "orthographic", "bit_depth": 12, "black_level": BLACK,
+                   "polarimetric_calibration": "polcal.npz"},
+        "lights": [{"direction": [0.3 * math.cos(i) / 1.044031, 0.3 * math.sin(i) / 1.044031, -1.0 / 1.044031],
+                    "frame": f"frames/{i:03d}.png", "exposure_us": 8000.0,
+                    "brackets": [{"frame": f"frames/{i:03d}_b{j}.png", "exposure_us": 8000.0 * r}
+                                 for j, r in enumerate(ratios[1:], 1)]} for i in range(4)],
+    })
+    root = write_capture(tmp_path / "cap", Capture(spec=spec, frames=frames[0],
+                                                   brackets=np.stack(frames[1:], axis=1)))
+    write_polarimetric_calibration(root / "polcal.npz", sensor, overwrite=True)
+    inputs = preprocess_capture(load_capture(root), dtype=torch.float64, demosaic="superpixel", mixed_sigma=None,
+                                polarisation_check=False)
+    assert int(inputs.saturated.sum()) == 0
+    ok = inputs.valid
+    err = (inputs.stokes - truth).abs().amax(1)[ok]  # (N,) worst of s0, s1, s2
+    assert int(ok.sum()) > 0.9 * ok.numel() and float(err.max()) < 0.01 and float(err.median()) < 0.002
