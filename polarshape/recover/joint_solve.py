@@ -16,9 +16,10 @@ S δg = −(b_g − Σ H_gnᵀ H_nn⁻¹ b_n), S = H_gg − Σ H_gn H_nn⁻¹ H_
 Marquardt's λ·diag(H) with one λ for the globals and one per pixel.
 
 Jacobians: w.r.t. a normal by forward differences of the full model (as the per-pixel solver);
-w.r.t. μ, α, β, κ by forward differences through the tables — one table build per fitted parameter
-per iteration (milliseconds at κ = 0, :func:`polarshape.brdf.build_tables`), all on the iteration's
-table layout so that the differences are smooth; w.r.t. k_s (and a global k_b) from the rendered
+w.r.t. μ, α, β, κ by forward differences through coarse tables (body grid 33 instead of 65, a
+quarter of the build) — G + 1 table builds per iteration (:func:`polarshape.brdf.build_tables`),
+all on the iteration's table layout so that the differences are smooth; the loss itself always
+uses the full tables; w.r.t. k_s (and a global k_b) from the rendered
 parts, without a table build.
 
 Acceptance: the trial globals are evaluated with each pixel's old and new normal, and each pixel
@@ -165,6 +166,7 @@ class _Model:
     polarised: bool
     delta: float
     n_grid: int
+    jac_grid: int
 
     def tables(self, vals: dict[str, float], layout_of: dict[str, float] | None = None) -> FMBRDFTables:
         """Tables of ``vals`` laid out at ``layout_of`` (default: ``vals`` themselves)."""
@@ -207,13 +209,15 @@ def _jacobians(model: _Model, st: _State, step_h: float) -> tuple[Tensor, Tensor
     r0 = st.r.reshape(p, -1)
     jn, t1, t2 = normal_jacobian(st.problem, st.n, r0, obs, step_h)
     cols = []
-    for name in model.table_names:
-        h = _fd_step(name, st.vals[name])
-        vals = {**st.vals, name: _from_u(name, _to_u(name, st.vals[name]) + h)}
-        # on the base point's table layout, so that the difference is smooth in the parameter
-        tables = model.tables(vals, layout_of=st.vals)
-        r_i = model.problem(tables, vals).residual(st.n, obs)[0].reshape(p, -1)
-        cols.append((r_i - r0) / h)
+    if model.table_names:
+        # coarse tables (``jac_grid``) on the base point's layout: cheap, and smooth in the parameter
+        coarse = replace(model, n_grid=model.jac_grid)
+        r_c = coarse.problem(coarse.tables(st.vals), st.vals).residual(st.n, obs)[0].reshape(p, -1)
+        for name in model.table_names:
+            h = _fd_step(name, st.vals[name])
+            vals = {**st.vals, name: _from_u(name, _to_u(name, st.vals[name]) + h)}
+            r_i = coarse.problem(coarse.tables(vals, layout_of=st.vals), vals).residual(st.n, obs)[0].reshape(p, -1)
+            cols.append((r_i - r_c) / h)
     for name in model.linear_names:
         h = _fd_step(name, st.vals[name])
         vals = {**st.vals, name: st.vals[name] + h}
@@ -228,7 +232,7 @@ def _mean(loss_pp: Tensor, obs: Observations) -> Tensor:
 
 def joint_solve(normals: Tensor, obs: Observations, params: FMBRDFParams, *, names: tuple[str, ...] | list[str],
                 per_pixel_albedo: bool = True, polarised: bool = True, delta: float = 0.01, max_iter: int = 20,
-                tol: float = 1e-5, step_h: float = 2e-3, max_step: float = 0.25, n_grid: int = 65) -> JointResult:
+                tol: float = 1e-5, step_h: float = 2e-3, max_step: float = 0.25, n_grid: int = 65, jac_grid: int = 33) -> JointResult:
     """Normals and material by one Levenberg–Marquardt with the Schur complement (module docstring).
 
     Args:
@@ -241,7 +245,7 @@ def joint_solve(normals: Tensor, obs: Observations, params: FMBRDFParams, *, nam
         delta: Huber threshold on the channel-weighted Stokes residual.
         max_iter: most LM iterations. tol: relative loss change that ends the solve.
         step_h: normal forward-difference step; max_step: largest normal step (tangent units).
-        n_grid: body-table grid.
+        n_grid: body-table grid of the loss; jac_grid: the (coarser, cheaper) one of the globals' Jacobian.
 
     Returns:
         :class:`JointResult`.
@@ -251,7 +255,7 @@ def joint_solve(normals: Tensor, obs: Observations, params: FMBRDFParams, *, nam
     if unknown:
         raise ValueError(f"joint_solve names must be among {TABLE_PARAMS}; got {unknown}")
     model = _Model(obs, tuple(n for n in TABLE_PARAMS if n in names), ("k_s",) if per_pixel_albedo else ("k_s", "k_b"),
-                   per_pixel_albedo, polarised, float(delta), n_grid)
+                   per_pixel_albedo, polarised, float(delta), n_grid, jac_grid)
     fitted = model.table_names + model.linear_names
     dev, p = normals.device, normals.shape[0]
     history: list[dict] = []
@@ -277,7 +281,7 @@ def joint_solve(normals: Tensor, obs: Observations, params: FMBRDFParams, *, nam
             jgw = jg * w.unsqueeze(-1)
             h_gg = torch.einsum("pmi,pmj->ij", jgw, jg)
             b_n, b_g = (jnw * r0.unsqueeze(-1)).sum(1), (jgw * r0.unsqueeze(-1)).sum((0, 1))
-            rel, accepted = 0.0, False
+            rel, accepted, moved = 0.0, False, 0.0
             for _attempt in range(6):
                 dn, dg = schur_step(h_nn, h_ng, h_gg, b_n, b_g, lam_n, lam_g)
                 dn = dn * (max_step / dn.norm(dim=-1).clamp_min(max_step)).unsqueeze(-1)
@@ -304,13 +308,14 @@ def joint_solve(normals: Tensor, obs: Observations, params: FMBRDFParams, *, nam
                                 torch.where(kn3, trial_new.r, trial_old.r),
                                 torch.where(keep_new, trial_new.k_b, trial_old.k_b), loss_pp)
                     total, accepted = total_t, True
+                    moved = float(keep_new.double().mean())
                     lam_g = max(lam_g / 3, 1e-7)
                     lam_n = torch.where(keep_new, (lam_n / 3).clamp_min(1e-7), (lam_n * 4).clamp_max(1e7))
                     break
                 lam_g = min(lam_g * 10, 1e10)
                 lam_n = torch.where(better, lam_n, (lam_n * 4).clamp_max(1e7))
             history.append({"iteration": it, "loss": total, "rel_change": rel, "lambda": lam_g,
-                            "accepted": accepted, "seconds": time.perf_counter() - t0,
+                            "accepted": accepted, "moved": moved, "seconds": time.perf_counter() - t0,
                             **{k: st.vals[k] for k in fitted}})
             logger.debug("joint %d: loss %.6g (rel %.2e) %s", it, total, rel, {k: st.vals[k] for k in fitted})
             if not accepted or rel < tol:

@@ -55,7 +55,7 @@ class RecoveryOptions(_Options):
         "of the joint Levenberg-Marquardt on the coarsest level)"
     )
     solver: Literal["joint", "alternating"] = Field(
-        "joint", description="coarsest level: joint = normals and material in one Levenberg-Marquardt (Schur "
+        "alternating", description="coarsest level: joint = normals and material in one Levenberg-Marquardt (Schur "
         "complement of the per-pixel blocks); alternating = material and normals in turn"
     )
     subsample_pixels: int = Field(4096, ge=64, description="pixels used for the material fit")
