@@ -1,10 +1,10 @@
 """Issue 13: the joint solve against the alternation, in the same run, with its convergence table.
 
-    python benchmarks/joint_solve.py                       # 48² super-pixels, 13 lights, all cases
+    python benchmarks/joint_solve.py --size 40             # 40² super-pixels, all cases
     python benchmarks/joint_solve.py --size 64 --alphas 0.1 0.3 --kappas 0 --kinds sphere
 
 Captures: the tests' simulated scenes (``tests/test_normals.py::_simulate``: ``sphere`` —
-orthographic camera; ``blob`` — perspective pinhole), 12-bit with shot and read noise, 13 lights,
+orthographic camera; ``blob`` — perspective pinhole), 12-bit with shot and read noise, 12 lights,
 the material's α and κ as given (μ 1.5, β 2, k_b 0.5), exposure 1 ms for α < 0.1 (the shiny lobe
 would saturate at the scenes' 10 ms). Each capture is recovered end to end (``recover_capture``,
 model fmbrdf, κ decided by the recovery) with ``recovery.solver`` ``alternating`` then ``joint``.
@@ -55,7 +55,7 @@ def main() -> None:
     args = parser.parse_args()
     logging.basicConfig(level=logging.WARNING)
     torch.set_num_threads(1)
-    print(f"machine: {platform.machine()} {platform.processor() or ''}, torch threads 1; size {args.size}², 13 lights")
+    print(f"machine: {platform.machine()} {platform.processor() or ''}, torch threads 1; size {args.size}², the scenes' 12 lights")
     head = (f"{'case':<28} {'solver':<11} {'iters':>5} {'rel_chg':>8} {'conv':>4} {'time_s':>7} {'ratio':>6} "
             f"{'dα/α':>7} {'dμ':>7} {'dβ':>6} {'κ':>6} {'err°':>6}")
     print(head)

@@ -26,6 +26,14 @@ albedos only (the normals move to the material first), the later ones fit μ, α
 material has κ > 0, unless ``fit_kappa`` says otherwise) without the α grid that starts an
 unknown material.
 
+``recovery.solver: joint`` replaces the alternation on the coarsest level (an unknown or initial
+material): after the first outer iteration (the α grid, the normals of the whole level) normals and
+material of the subsample move together in one Levenberg–Marquardt with the Schur complement of
+the per-pixel blocks (:func:`polarshape.recover.joint_solve.joint_solve`); κ is then a nested fit
+from that κ = 0 optimum (:func:`polarshape.recover.joint_solve.nested_kappa`, kept when it lowers
+the loss by ≥ 1 %, and it cannot raise it); the level's normals are then refined for the final
+material. Finer levels are as above.
+
 Robust loss: Huber on channel-weighted Stokes residuals, δ = 3 × the robust (MAD) residual σ of the
 initial fit, floored at 4 quantisation steps (:func:`polarshape.recover.normal_solver.huber_delta`).
 """
