@@ -55,7 +55,8 @@ def main() -> None:
     args = parser.parse_args()
     logging.basicConfig(level=logging.WARNING)
     torch.set_num_threads(1)
-    print(f"machine: {platform.machine()} {platform.processor() or ''}, torch threads 1; size {args.size}², the scenes' 12 lights")
+    print(f"machine: {platform.machine()} {platform.processor() or ''}, torch threads 1; size {args.size}², "
+          "the scenes' 12 lights")
     head = (f"{'case':<28} {'solver':<11} {'iters':>5} {'rel_chg':>8} {'conv':>4} {'time_s':>7} {'ratio':>6} "
             f"{'dα/α':>7} {'dμ':>7} {'dβ':>6} {'κ':>6} {'err°':>6}")
     print(head)

@@ -232,7 +232,8 @@ def _mean(loss_pp: Tensor, obs: Observations) -> Tensor:
 
 def joint_solve(normals: Tensor, obs: Observations, params: FMBRDFParams, *, names: tuple[str, ...] | list[str],
                 per_pixel_albedo: bool = True, polarised: bool = True, delta: float = 0.01, max_iter: int = 20,
-                tol: float = 1e-5, step_h: float = 2e-3, max_step: float = 0.25, n_grid: int = 65, jac_grid: int = 33) -> JointResult:
+                tol: float = 1e-5, step_h: float = 2e-3, max_step: float = 0.25, n_grid: int = 65,
+                jac_grid: int = 33) -> JointResult:
     """Normals and material by one Levenberg–Marquardt with the Schur complement (module docstring).
 
     Args:
