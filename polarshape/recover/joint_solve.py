@@ -22,6 +22,9 @@ all on the iteration's table layout so that the differences are smooth; the loss
 uses the full tables; w.r.t. k_s (and a global k_b) from the rendered
 parts, without a table build.
 
+Bounds: a global at its bound whose step points outward is held for that step (its coupling
+removed and the system solved again), so the others do not move as if it had.
+
 Acceptance: the trial globals are evaluated with each pixel's old and new normal, and each pixel
 keeps the better (for fixed globals the loss is a sum of per-pixel terms), so a pixel whose
 normal step overshoots does not veto the globals' step; the step is taken when the total loss
@@ -149,6 +152,29 @@ def _fd_step(name: str, value: float) -> float:
         h = 1e-3 * max(abs(value), 1e-3)
     _, hi = _bounds(name)
     return -h if _from_u(name, _to_u(name, value) + h) >= hi else h
+
+
+def _pinned(names: tuple[str, ...], vals: dict[str, float], step: list[float]) -> list[int]:
+    """Indices of the globals that sit at a bound and whose step points outward (an active bound)."""
+    out = []
+    for i, (name, d) in enumerate(zip(names, step)):
+        lo, hi = _bounds(name)
+        v = vals[name]
+        if (d < 0 and v <= lo * (1 + 1e-9) + 1e-12) or (d > 0 and v >= hi * (1 - 1e-9)):
+            out.append(i)
+    return out
+
+
+def _hold(pinned: list[int], h_ng: Tensor, h_gg: Tensor, b_g: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """(H_ng, H_gg, b_g) with the ``pinned`` globals decoupled and given a zero step."""
+    h_ng, h_gg, b_g = h_ng.clone(), h_gg.clone(), b_g.clone()
+    idx = torch.tensor(pinned, device=h_gg.device)
+    h_ng[..., idx] = 0.0
+    h_gg[idx, :] = 0.0
+    h_gg[:, idx] = 0.0
+    h_gg[idx, idx] = 1.0
+    b_g[idx] = 0.0
+    return h_ng, h_gg, b_g
 
 
 def _max_step(name: str, value: float) -> float:
@@ -285,8 +311,13 @@ def joint_solve(normals: Tensor, obs: Observations, params: FMBRDFParams, *, nam
             rel, accepted, moved = 0.0, False, 0.0
             for _attempt in range(6):
                 dn, dg = schur_step(h_nn, h_ng, h_gg, b_n, b_g, lam_n, lam_g)
-                dn = dn * (max_step / dn.norm(dim=-1).clamp_min(max_step)).unsqueeze(-1)
                 dg_host = dg.tolist()  # the tables are built from the globals: G numbers to the host
+                pinned = _pinned(fitted, st.vals, dg_host)
+                if pinned:  # a global at its bound pushed outward: solve again with it held
+                    h_ng_p, h_gg_p, b_g_p = _hold(pinned, h_ng, h_gg, b_g)
+                    dn, dg = schur_step(h_nn, h_ng_p, h_gg_p, b_n, b_g_p, lam_n, lam_g)
+                    dg_host = dg.tolist()
+                dn = dn * (max_step / dn.norm(dim=-1).clamp_min(max_step)).unsqueeze(-1)
                 vals = dict(st.vals)
                 for name, d in zip(fitted, dg_host):
                     lim = _max_step(name, st.vals[name])
