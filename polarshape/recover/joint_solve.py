@@ -80,7 +80,8 @@ class JointResult:
         loss: final mean Huber loss per unit observation weight. initial_loss: the same at the start.
         iterations: LM iterations taken. rel_change: relative loss change of the last iteration
             (0 when no damping found a descent). converged: ``rel_change < tol``.
-        history: per iteration: loss, relative change, λ of the globals, seconds, parameters.
+        history: per iteration: loss, relative change, λ of the globals, whether a step was taken, the
+            share of pixels whose normal step was kept (``moved``), seconds, parameters.
         seconds: wall time.
     """
 
@@ -329,7 +330,8 @@ def joint_solve(normals: Tensor, obs: Observations, params: FMBRDFParams, *, nam
                 keep_new = ((n_new * obs.view).sum(-1) > 0) & torch.isfinite(trial_new.loss_pp) & (
                     trial_new.loss_pp < trial_old.loss_pp)
                 loss_pp = torch.where(keep_new, trial_new.loss_pp, trial_old.loss_pp)
-                total_t = float(_mean(loss_pp, obs))  # the one convergence / acceptance check
+                # the one convergence / acceptance check (with the share of pixels that took their step)
+                total_t, moved_t = torch.stack([_mean(loss_pp, obs).double(), keep_new.double().mean()]).tolist()
                 better = keep_new | (trial_new.loss_pp < st.loss_pp)
                 if math.isfinite(total_t) and total_t < total:
                     rel = (total - total_t) / max(total, 1e-300)
@@ -340,7 +342,7 @@ def joint_solve(normals: Tensor, obs: Observations, params: FMBRDFParams, *, nam
                                 torch.where(kn3, trial_new.r, trial_old.r),
                                 torch.where(keep_new, trial_new.k_b, trial_old.k_b), loss_pp)
                     total, accepted = total_t, True
-                    moved = float(keep_new.double().mean())
+                    moved = moved_t
                     lam_g = max(lam_g / 3, 1e-7)
                     lam_n = torch.where(keep_new, (lam_n / 3).clamp_min(1e-7), (lam_n * 4).clamp_max(1e7))
                     break

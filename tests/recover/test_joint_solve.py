@@ -12,7 +12,7 @@ from polarshape.brdf.params import FMBRDFParams
 from polarshape.metrics import angular_error_deg
 from polarshape.recover.coarse_to_fine import solve_fmbrdf
 from polarshape.recover.joint_solve import joint_solve, nested_kappa, schur_step
-from polarshape.recover.observations import flatten_observations
+from polarshape.recover.observations import Observations, flatten_observations
 from polarshape.recover.options import RecoveryOptions
 
 from test_coarse_to_fine import _sphere_inputs
@@ -96,3 +96,21 @@ def test_nested_kappa_never_raises_the_loss_and_finds_kappa() -> None:
     assert gain >= 0.0 and fit.loss <= fit.initial_loss
     assert abs(fit.initial_loss - base.loss) <= 1e-3 * base.loss  # the κ fit starts at the κ = 0 optimum
     assert gain > 0.5 and fit.params.kappa > 10.0, (gain, fit.params)
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_joint_solve_on_cuda_matches_cpu() -> None:
+    inputs, truth = _sphere_inputs(12, alpha=0.3)
+    m = inputs.mask
+    obs = flatten_observations(inputs, m)
+    start = torch.nn.functional.normalize(truth[m] + torch.tensor([0.05, -0.03, 0.0], dtype=torch.float64), dim=-1)
+    kw = {"names": ("ior", "alpha", "beta"), "delta": 1e-3, "max_iter": 5}
+    fits = {}
+    for dev in ("cpu", "cuda"):
+        obs_d = Observations(*(t.float().to(dev) for t in (obs.stokes, obs.weight, obs.lights, obs.irradiance,
+                                                             obs.view)))
+        fits[dev] = joint_solve(start.float().to(dev), obs_d, FMBRDFParams(ior=1.4, alpha=0.25, beta=2.5), **kw)
+    cpu, gpu = fits["cpu"], fits["cuda"]
+    assert gpu.normals.device.type == "cuda"
+    assert abs(gpu.params.alpha - cpu.params.alpha) < 1e-3 and abs(gpu.params.ior - cpu.params.ior) < 1e-3
