@@ -419,9 +419,10 @@ def _joint_level(lv: _Level, inputs: RecoveryInputs, sub_idx: Tensor, options: R
         if gain >= 0.01:
             fit = trial
         else:
-            log.skipped.append(f"kappa: the nested κ fit (from the κ = 0 optimum) lowered the loss by {100 * gain:.2f}% "
-                               f"(needs ≥ 1%; κ would be {trial.params.kappa:.3g}): κ = 0, separable fast path "
-                               "(fit_kappa: true forces κ)")
+            # a nested fit keeps the κ = 0 optimum when κ does not help: it never reports a rise
+            said = f"lowered the loss by {100 * gain:.2f}%" if gain > 0 else "did not lower the loss"
+            log.skipped.append(f"kappa: the nested κ fit (from the κ = 0 optimum) {said} (needs ≥ 1%; κ would be "
+                               f"{trial.params.kappa:.3g}): κ = 0, separable fast path (fit_kappa: true forces κ)")
     log.add_time("joint", t0)
     lv.params = fit.params
     lv.n[sub_idx] = fit.normals
