@@ -114,3 +114,14 @@ def test_joint_solve_on_cuda_matches_cpu() -> None:
     cpu, gpu = fits["cpu"], fits["cuda"]
     assert gpu.normals.device.type == "cuda"
     assert abs(gpu.params.alpha - cpu.params.alpha) < 1e-3 and abs(gpu.params.ior - cpu.params.ior) < 1e-3
+
+
+@pytest.mark.slow
+def test_joint_level_kappa_decision_on_kappa_free_data_keeps_zero_and_reports_no_rise() -> None:
+    inputs, truth = _sphere_inputs(12)
+    start = torch.where(inputs.mask[..., None], truth, torch.tensor([0.0, 0.0, -1.0], dtype=torch.float64))
+    state, log = solve_fmbrdf(inputs, start, RecoveryOptions(model="fmbrdf", solver="joint", max_outer_iterations=3))
+    said = [s for s in log.skipped if s.startswith("kappa:")]
+    assert state.params.kappa == 0.0 and len(said) == 1, log.skipped
+    assert "by -" not in said[0] and "nested" in said[0], said
+    assert log.counts["kappa_probes"] == 1
