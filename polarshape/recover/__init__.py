@@ -10,7 +10,8 @@ Along the data flow:
 - :mod:`~polarshape.recover.table_fit` — the material of a tabulated (MERL-layout) BRDF, log-RMSE;
 - :mod:`~polarshape.recover.normal_solver` — per-pixel Levenberg–Marquardt normals, neighbour propagation;
 - :mod:`~polarshape.recover.priors` — smoothness prior, filling pixels without data;
-- :mod:`~polarshape.recover.coarse_to_fine` — material and normals alternated on a pyramid;
+- :mod:`~polarshape.recover.joint_solve` — normals and material in one Levenberg–Marquardt (Schur complement);
+- :mod:`~polarshape.recover.coarse_to_fine` — material and normals alternated (or solved jointly) on a pyramid;
 - :mod:`~polarshape.recover.options` — the options, embedded in ``polarshape run``'s config.
 """
 

@@ -26,6 +26,14 @@ albedos only (the normals move to the material first), the later ones fit μ, α
 material has κ > 0, unless ``fit_kappa`` says otherwise) without the α grid that starts an
 unknown material.
 
+``recovery.solver: joint`` replaces the alternation on the coarsest level (an unknown or initial
+material): after the first outer iteration (the α grid, the normals of the whole level) normals and
+material of the subsample move together in one Levenberg–Marquardt with the Schur complement of
+the per-pixel blocks (:func:`polarshape.recover.joint_solve.joint_solve`); κ is then a nested fit
+from that κ = 0 optimum on coarse tables (:func:`polarshape.recover.joint_solve.nested_kappa`; it
+cannot raise the loss), polished on full tables and kept when it lowers the full-table loss by ≥ 1 %; the level's normals are then refined for the final
+material. Finer levels are as above.
+
 Robust loss: Huber on channel-weighted Stokes residuals, δ = 3 × the robust (MAD) residual σ of the
 initial fit, floored at 4 quantisation steps (:func:`polarshape.recover.normal_solver.huber_delta`).
 """
@@ -45,6 +53,7 @@ from tqdm.auto import tqdm
 
 from polarshape.brdf.fmbrdf import build_tables
 from polarshape.brdf.params import FMBRDFParams
+from polarshape.recover.joint_solve import JointResult, joint_solve, nested_kappa
 from polarshape.recover.normal_solver import (
     NormalProblem, huber_delta, neighbour_index, propagate_normals, refine_normals, unit,
 )
@@ -298,6 +307,10 @@ def fit_level(inputs: RecoveryInputs, normals: Tensor, params: FMBRDFParams, opt
     if material_use == "initial" and fit_kappa is None and params.kappa > 0:
         fit_kappa = True  # the material has a correlation: fit it from there, no probe
     kappa_decided = fit_kappa is not None or material_use == "fixed"
+    if fit_globals and options.solver == "joint" and material_use != "fixed":
+        _joint_level(lv, inputs, sub_idx, options, fit_kappa=fit_kappa, material_use=material_use, level=level,
+                     log=log)
+        return _state_of(lv, normals)
     window: list[float] = []
     outer = options.max_outer_iterations if fit_globals else 1
     for it in tqdm(range(outer), desc=f"level {level}", unit="iteration", disable=not progress):
@@ -335,11 +348,90 @@ def fit_level(inputs: RecoveryInputs, normals: Tensor, params: FMBRDFParams, opt
             logger.info("level %d: reached max_outer_iterations=%d", level, outer)
     if not kappa_decided and fit_globals and not fit_kappa:
         log.skipped.append("kappa: not tested (alternation did not converge within max_outer_iterations): κ kept at 0")
+    return _state_of(lv, normals)
+
+
+def _state_of(lv: _Level, normals: Tensor) -> FMBRDFState:
+    """The level's solution on its grid (``normals``: any (H, W, 3) of the grid, for shape and dtype)."""
+    pixels, n = lv.pixels, lv.n
     normals_img = torch.full_like(normals, math.nan)
     normals_img[pixels] = lv.n
     kb_img = torch.full(pixels.shape, math.nan, dtype=n.dtype, device=n.device)
     kb_img[pixels] = lv.k_b
     return FMBRDFState(lv.params, normals_img, kb_img)
+
+
+def _joint_record(fit: JointResult, level: int, stage: str, log: SolveLog) -> None:
+    """Append the joint solve's iterations to the log's history and counts."""
+    log.count("joint_iterations", fit.iterations)
+    for h in fit.history:
+        log.history.append({"stage": f"level{level}", "solver": stage, "iteration": h["iteration"], "loss": h["loss"],
+                            "rel_change": h["rel_change"], "seconds": time.perf_counter() - log.t_start,
+                            **fit.params.as_dict(), **{k: v for k, v in h.items() if k in ("ior", "alpha", "beta",
+                                                                                             "kappa", "k_s")}})
+
+
+def _joint_level(lv: _Level, inputs: RecoveryInputs, sub_idx: Tensor, options: RecoveryOptions, *,
+                 fit_kappa: bool | None, material_use: Literal["fit", "initial"], level: int, log: SolveLog) -> None:
+    """The coarsest level with the joint solve (updates ``lv``): the alternation's first outer
+    iteration as the start (α grid, or a known material's albedos; normals of the whole level),
+    then :func:`polarshape.recover.joint_solve.joint_solve` of normals and material on the subsample,
+    κ as a nested fit from the κ = 0 optimum (``fit_kappa`` None: kept when it lowers the loss by
+    ≥ 1 %), and the level's normals for the final material."""
+    obs, polarised = lv.obs, inputs.has_polarisation
+    t0 = time.perf_counter()
+    lv.params = _global_step(lv.n[sub_idx], obs.select(sub_idx), lv.params, options, it=0, fit_kappa=bool(fit_kappa),
+                             polarised=polarised, delta=lv.delta, use=material_use, log=log)
+    log.add_time("global_params", t0)
+    t0 = time.perf_counter()
+    problem, loss_pp, n_iter = _normal_step(lv, options, polarised, max_iter=6, level=level, it=0)
+    new_delta = huber_delta(obs, inputs.noise_std, problem.residual(lv.n, obs)[0])
+    if abs(new_delta - lv.delta) > 0.25 * lv.delta:
+        lv.delta = new_delta
+        loss_pp = problem.with_delta(new_delta).pixel_loss(lv.n, obs)
+    log.add_time("normals", t0)
+    log.history.append({"stage": f"level{level}", "solver": "start", "iteration": 0, "loss": _mean_loss(loss_pp, obs),
+                        "lm_iterations": n_iter, "seconds": time.perf_counter() - log.t_start, **lv.params.as_dict()})
+    t0 = time.perf_counter()
+    names = tuple(n for n in ("ior", "alpha", "beta") if polarised or n != "ior")
+    obs_sub = obs.select(sub_idx)
+    kwargs = {"per_pixel_albedo": options.per_pixel_albedo, "polarised": polarised, "delta": lv.delta,
+              "max_iter": options.max_outer_iterations}
+    fit = joint_solve(lv.n[sub_idx], obs_sub, lv.params, names=names + (("kappa",) if fit_kappa else ()), **kwargs)
+    _joint_record(fit, level, "joint", log)
+    logger.info("level %d joint: %d iterations, loss %.6g, rel change %.2e, %s", level, fit.iterations, fit.loss,
+                fit.rel_change, fit.params.as_dict())
+    if not fit.converged:
+        log.skipped.append(f"joint: not converged within max_outer_iterations={options.max_outer_iterations} "
+                           f"(last relative loss change {fit.rel_change:.2e})")
+    if fit_kappa is None:
+        t1 = time.perf_counter()
+        log.count("kappa_probes")
+        # the test on coarse tables (κ tables cost 0.1–0.6 s a build); a kept κ is polished on full ones
+        trial, gain = nested_kappa(fit, obs_sub, names=names, **{**kwargs, "n_grid": 33, "jac_grid": 17})
+        _joint_record(trial, level, "joint_kappa", log)
+        if gain >= 0.01:
+            polished = joint_solve(trial.normals, obs_sub, trial.params, names=names + ("kappa",), **kwargs)
+            _joint_record(polished, level, "joint_kappa", log)
+            gain = (fit.loss - polished.loss) / max(fit.loss, 1e-300)  # both on full tables
+            trial = polished
+        log.timings["kappa_test"] = time.perf_counter() - t1
+        if gain >= 0.01:
+            fit = trial
+        else:
+            # a nested fit keeps the κ = 0 optimum when κ does not help: it never reports a rise
+            said = f"lowered the loss by {100 * gain:.2f}%" if gain > 0 else "did not lower the loss"
+            log.skipped.append(f"kappa: the nested κ fit (from the κ = 0 optimum) {said} (needs ≥ 1%; κ would be "
+                               f"{trial.params.kappa:.3g}): κ = 0, separable fast path (fit_kappa: true forces κ)")
+    log.add_time("joint", t0)
+    lv.params = fit.params
+    lv.n[sub_idx] = fit.normals
+    t0 = time.perf_counter()
+    _, loss_pp, n_iter = _normal_step(lv, options, polarised, max_iter=10, level=level, it=1)
+    log.add_time("normals", t0)
+    log.history.append({"stage": f"level{level}", "solver": "final_normals", "iteration": 1,
+                        "loss": _mean_loss(loss_pp, obs), "lm_iterations": n_iter,
+                        "seconds": time.perf_counter() - log.t_start, **lv.params.as_dict()})
 
 
 def build_pyramid(inputs: RecoveryInputs, options: RecoveryOptions) -> list[RecoveryInputs]:

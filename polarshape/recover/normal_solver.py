@@ -27,8 +27,8 @@ from polarshape.recover.observations import Observations
 from polarshape.recover.reflectometry import channel_weights, huber, render_parts, solve_albedos
 
 __all__ = [
-    "CHUNK_PIXELS", "NEIGHBOURS_8", "NormalProblem", "huber_delta", "neighbour_index", "normal_information",
-    "propagate_normals", "refine_normals", "tangent_basis", "unit",
+    "CHUNK_PIXELS", "NEIGHBOURS_8", "NormalProblem", "huber_delta", "irls_weights", "neighbour_index",
+    "normal_information", "normal_jacobian", "propagate_normals", "refine_normals", "tangent_basis", "unit",
 ]
 
 #: Pixels per chunk of the per-pixel solve: the residual and its intermediates ((P, K) tensors,
@@ -82,10 +82,15 @@ class NormalProblem:
     def residual(self, normals: Tensor, obs: Observations) -> tuple[Tensor, Tensor]:
         """Weighted residual (P, K, 3) and k_b (P,) for normals (P, 3) of the pixels in ``obs``."""
         surf, body = render_parts(self.tables, normals, obs)
+        return self.residual_of_parts(surf, body, obs)
+
+    def residual_of_parts(self, surf: Tensor, body: Tensor, obs: Observations) -> tuple[Tensor, Tensor]:
+        """:meth:`residual` of rendered parts (P, K, 3) each (:func:`render_parts` of these tables):
+        the weighted residual (P, K, 3) and k_b (P,) for this problem's k_s (and k_b)."""
         if self.per_pixel:
             _, k_b = solve_albedos(surf, body, obs, per_pixel=True, polarised=self.polarised, k_s=self.k_s)
         else:
-            k_b = torch.full((normals.shape[0],), self.k_b_global, dtype=surf.dtype, device=surf.device)
+            k_b = torch.full((surf.shape[0],), self.k_b_global, dtype=surf.dtype, device=surf.device)
         r = (obs.stokes - self.k_s * surf - k_b[:, None, None] * body) * self.cw
         return r * obs.weight.sqrt().unsqueeze(-1), k_b
 
@@ -99,15 +104,15 @@ class NormalProblem:
             return self.loss(self.residual(normals, obs)[0])
 
 
-def _jacobian(problem: NormalProblem, n: Tensor, r0: Tensor, obs: Observations, step_h: float
-              ) -> tuple[Tensor, Tensor, Tensor]:
+def normal_jacobian(problem: NormalProblem, n: Tensor, r0: Tensor, obs: Observations, step_h: float
+                    ) -> tuple[Tensor, Tensor, Tensor]:
     """Forward-difference Jacobian (A, M, 2) of the flat residuals r0 (A, M) in the tangent basis (t1, t2)."""
     t1, t2 = tangent_basis(n)
     cols = [(problem.residual(unit(n + step_h * t), obs)[0].reshape(r0.shape) - r0) / step_h for t in (t1, t2)]
     return torch.stack(cols, -1), t1, t2
 
 
-def _irls(problem: NormalProblem, r0: Tensor) -> Tensor:
+def irls_weights(problem: NormalProblem, r0: Tensor) -> Tensor:
     """Huber IRLS weights of residuals r0."""
     a = r0.abs()
     return torch.where(a <= problem.delta, torch.ones_like(a), problem.delta / a.clamp_min(1e-30))
@@ -151,8 +156,8 @@ def _refine_chunk(problem: NormalProblem, normals: Tensor, obs: Observations, *,
             sub = obs.select(idx)
             n = normals[idx]
             r0 = r[idx].reshape(idx.numel(), -1)  # (A, M)
-            jac, t1, t2 = _jacobian(problem, n, r0, sub, step_h)
-            step = _damped_step(jac, r0, _irls(problem, r0), lam[idx], max_step)
+            jac, t1, t2 = normal_jacobian(problem, n, r0, sub, step_h)
+            step = _damped_step(jac, r0, irls_weights(problem, r0), lam[idx], max_step)
             trial = unit(n + step[:, :1] * t1 + step[:, 1:] * t2)
             facing = (trial * sub.view).sum(-1) > 0
             rt, kbt = problem.residual(trial, sub)
@@ -283,7 +288,7 @@ def normal_information(problem: NormalProblem, normals: Tensor, obs: Observation
     with torch.no_grad():
         r0 = problem.residual(normals, obs)[0] if residual is None else residual
         r0 = r0.reshape(normals.shape[0], -1)  # (P, M)
-        jac, t1, t2 = _jacobian(problem, normals, r0, obs, step_h)
-        h = (jac * _irls(problem, r0).unsqueeze(-1)).transpose(1, 2) @ jac  # (P, 2, 2)
+        jac, t1, t2 = normal_jacobian(problem, normals, r0, obs, step_h)
+        h = (jac * irls_weights(problem, r0).unsqueeze(-1)).transpose(1, 2) @ jac  # (P, 2, 2)
         basis = torch.stack([t1, t2], -1)  # (P, 3, 2)
         return basis @ h @ basis.transpose(1, 2)

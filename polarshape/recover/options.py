@@ -50,7 +50,14 @@ class RecoveryOptions(_Options):
     )
     per_pixel_albedo: bool = Field(True, description="one body albedo k_b per pixel (false: one global k_b)")
     fit_kappa: bool | None = Field(None, description="fit the microfacet correlation kappa (null: the recovery decides)")
-    max_outer_iterations: int = Field(20, ge=1, le=1000, description="most alternations of material and normals")
+    max_outer_iterations: int = Field(
+        20, ge=1, le=1000, description="most alternations of material and normals (solver joint: most iterations "
+        "of the joint Levenberg-Marquardt on the coarsest level)"
+    )
+    solver: Literal["joint", "alternating"] = Field(
+        "alternating", description="coarsest level: joint = normals and material in one Levenberg-Marquardt (Schur "
+        "complement of the per-pixel blocks); alternating = material and normals in turn"
+    )
     subsample_pixels: int = Field(4096, ge=64, description="pixels used for the material fit")
     coarse_to_fine: bool = Field(True, description="solve on an image pyramid, coarsest level first")
     propagate: bool = Field(

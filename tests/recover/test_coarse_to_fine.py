@@ -11,8 +11,9 @@ from polarshape.recover.observations import RecoveryInputs
 from polarshape.recover.options import RecoveryOptions
 
 
-def _sphere_inputs(n: int, k: int = 8) -> tuple[RecoveryInputs, torch.Tensor]:
-    """Noise-free FMBRDF observations of a sphere cap (n × n pixels, K directional lights) and its normals."""
+def _sphere_inputs(n: int, k: int = 8, *, alpha: float = 0.3, kappa: float = 0.0) -> tuple[RecoveryInputs, torch.Tensor]:
+    """Noise-free FMBRDF observations of a sphere cap (n × n pixels, K directional lights) and its normals
+    (μ 1.5, β 2, k_s 1, k_b 0.5; also used by test_joint_solve)."""
     y, x = torch.meshgrid(torch.linspace(-0.7, 0.7, n, dtype=torch.float64),
                           torch.linspace(-0.7, 0.7, n, dtype=torch.float64), indexing="ij")
     mask = x * x + y * y < 0.45
@@ -22,8 +23,8 @@ def _sphere_inputs(n: int, k: int = 8) -> tuple[RecoveryInputs, torch.Tensor]:
     dirs = torch.stack([t.sin() * phi.cos(), t.sin() * phi.sin(), -t.cos()], -1)  # (K, 3)
     lights = dirs[:, None, None].expand(k, n, n, 3)
     view = torch.tensor([0.0, 0.0, -1.0], dtype=torch.float64).expand(n, n, 3)
-    s = fmbrdf_stokes(normals.unsqueeze(0), lights, view.unsqueeze(0), ior=1.5, k_s=1.0, k_b=0.5, alpha=0.3,
-                      beta=2.0, kappa=0.0)  # (K, n, n, 3)
+    s = fmbrdf_stokes(normals.unsqueeze(0), lights, view.unsqueeze(0), ior=1.5, k_s=1.0, k_b=0.5, alpha=alpha,
+                      beta=2.0, kappa=kappa)  # (K, n, n, 3)
     valid = mask.expand(k, n, n) & (s[..., 0] > 1e-4)
     inputs = RecoveryInputs(s.permute(0, 3, 1, 2).contiguous(), valid, torch.zeros_like(valid), mask, lights,
                             torch.ones(k, n, n, dtype=torch.float64), view, 1e-4, True)

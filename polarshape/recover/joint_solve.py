@@ -1,0 +1,380 @@
+"""The joint solve: per-pixel normals and the global material in one Levenberg–Marquardt.
+
+The FMBRDF fit has the structure of bundle adjustment: P small per-pixel blocks (a normal, 2 DoF in
+its tangent plane; the body albedo k_b[p] in closed form inside the residual, as in
+:class:`polarshape.recover.normal_solver.NormalProblem`) coupled through G ≤ 6 shared parameters
+(μ, log α, log β, [κ], k_s, [one global k_b]). Alternating between the two converges slowly exactly
+when they are correlated (a shiny lobe: α against the normals under the highlight). Here both move
+together: each iteration forms the Gauss–Newton system of the Huber-reweighted (IRLS) residuals
+
+    [H_nn  H_ng] [δn]     [b_n]        H_nn: P blocks 2 × 2,  H_ng: P blocks 2 × G,
+    [H_gn  H_gg] [δg] = − [b_g]        H_gg: G × G
+
+and eliminates the per-pixel blocks by the Schur complement (:func:`schur_step`): the reduced system
+S δg = −(b_g − Σ H_gnᵀ H_nn⁻¹ b_n), S = H_gg − Σ H_gn H_nn⁻¹ H_ng, is only G × G; then
+δn_p = −H_nn,p⁻¹ (b_n,p + H_ng,p δg), all pixels batched on the device. Damping is Levenberg–
+Marquardt's λ·diag(H) with one λ for the globals and one per pixel.
+
+Jacobians: w.r.t. a normal by forward differences of the full model (as the per-pixel solver);
+w.r.t. μ, α, β, κ by forward differences through coarse tables (body grid 33 instead of 65, a
+quarter of the build) — G + 1 table builds per iteration (:func:`polarshape.brdf.build_tables`),
+all on the iteration's table layout so that the differences are smooth; the loss itself always
+uses the full tables; w.r.t. k_s (and a global k_b) from the rendered
+parts, without a table build.
+
+Bounds: a global at its bound whose step points outward is held for that step (its coupling
+removed and the system solved again), so the others do not move as if it had.
+
+Acceptance: the trial globals are evaluated with each pixel's old and new normal, and each pixel
+keeps the better (for fixed globals the loss is a sum of per-pixel terms), so a pixel whose
+normal step overshoots does not veto the globals' step; the step is taken when the total loss
+falls, else the globals' λ grows tenfold. Stops when the relative loss change of an accepted
+step is below ``tol`` or no damping finds a descent. The loss never rises, so a fit that adds κ
+to a κ = 0 optimum (:func:`nested_kappa`) can only lower it: a proper nested fit.
+
+Host syncs: per iteration the globals' step (G numbers, the tables are built from them) and the
+total loss (the acceptance and convergence test) come to the host; every per-pixel operation stays
+batched on the device.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass, field, replace
+
+import torch
+from torch import Tensor
+
+from polarshape.brdf.fmbrdf import FMBRDFTables, build_tables
+from polarshape.brdf.params import FMBRDFParams
+from polarshape.recover.normal_solver import NormalProblem, irls_weights, normal_jacobian, unit
+from polarshape.recover.observations import Observations
+from polarshape.recover.reflectometry import BOUNDS, render_parts, solve_albedos
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["JointResult", "TABLE_PARAMS", "joint_solve", "nested_kappa", "schur_step"]
+
+#: The global parameters that need a table build, in the order of the global vector.
+TABLE_PARAMS: tuple[str, ...] = ("ior", "alpha", "beta", "kappa")
+
+_LOG_PARAMS = ("alpha", "beta")  # searched in log: a step is a relative change
+#: Forward-difference steps in the search coordinate (log for α, β).
+_FD_STEP = {"ior": 1e-3, "alpha": 1e-3, "beta": 1e-3}
+#: Largest step of one iteration in the search coordinate (a trust region on top of the damping).
+_MAX_STEP = {"ior": 0.5, "alpha": 1.0, "beta": 1.0, "kappa": 30.0}
+#: With κ fitted the tables are laid out for at least this κ, so that ∂/∂κ at κ = 0 sees the
+#: azimuthal modes (a κ = 0 layout is separable and blind to κ).
+_KAPPA_LAYOUT_MIN = 2.0
+
+
+@dataclass
+class JointResult:
+    """Result of :func:`joint_solve`.
+
+    Attributes:
+        params: the fitted material (k_b: median of the per-pixel k_b > 0, or the global k_b).
+        normals: (P, 3) unit normals. k_b: (P,) body albedo.
+        loss: final mean Huber loss per unit observation weight. initial_loss: the same at the start.
+        iterations: LM iterations taken. rel_change: relative loss change of the last iteration
+            (0 when no damping found a descent). converged: ``rel_change < tol``.
+        history: per iteration: loss, relative change, λ of the globals, whether a step was taken, the
+            share of pixels whose normal step was kept (``moved``), seconds, parameters.
+        seconds: wall time.
+    """
+
+    params: FMBRDFParams
+    normals: Tensor
+    k_b: Tensor
+    loss: float
+    initial_loss: float
+    iterations: int
+    rel_change: float
+    converged: bool
+    history: list[dict] = field(default_factory=list)
+    seconds: float = 0.0
+
+
+def schur_step(h_nn: Tensor, h_ng: Tensor, h_gg: Tensor, b_n: Tensor, b_g: Tensor, lam_n: Tensor, lam_g: float,
+               eps: float = 1e-12) -> tuple[Tensor, Tensor]:
+    """Damped Gauss–Newton step of the block system by the Schur complement of the per-pixel blocks.
+
+    Solves (H + diag(λ ⊙ (diag H + ε))) [δn; δg] = −[b_n; b_g] with H = [[blockdiag(H_nn), H_ng],
+    [H_ngᵀ, H_gg]], λ = λ_n[p] on pixel p's rows and λ_g on the globals' (module docstring).
+
+    Args:
+        h_nn: (P, 2, 2) per-pixel blocks. h_ng: (P, 2, G) couplings. h_gg: (G, G).
+        b_n: (P, 2), b_g: (G,) gradients. lam_n: (P,) per-pixel damping. lam_g: the globals' damping.
+        eps: added to the diagonal before scaling by λ (keeps empty blocks invertible).
+
+    Returns:
+        δn (P, 2), δg (G,), dtype and device of the inputs.
+    """
+    g = h_gg.shape[0]
+    d = torch.diagonal(h_nn, dim1=1, dim2=2)  # (P, 2)
+    a = h_nn[:, 0, 0] + lam_n * (d[:, 0] + eps)
+    b, c = h_nn[:, 0, 1], h_nn[:, 1, 0]
+    e = h_nn[:, 1, 1] + lam_n * (d[:, 1] + eps)
+    det = a * e - b * c
+    det = torch.where(det.abs() > 1e-300, det, torch.ones_like(det))
+    inv = torch.stack([torch.stack([e, -b], -1), torch.stack([-c, a], -1)], -2) / det[:, None, None]  # (P, 2, 2)
+    x = inv @ torch.cat([h_ng, b_n.unsqueeze(-1)], -1)  # (P, 2, G + 1): H_nn⁻¹ [H_ng | b_n]
+    hgt = h_ng.transpose(1, 2)  # (P, G, 2)
+    s = h_gg + torch.diag(lam_g * (torch.diagonal(h_gg) + eps)) - (hgt @ x[..., :g]).sum(0)  # (G, G)
+    rhs = b_g - (hgt @ x[..., g:]).sum(0).squeeze(-1)  # (G,)
+    dg = -torch.linalg.solve(s, rhs)
+    dn = -(x[..., g] + (x[..., :g] @ dg.unsqueeze(-1)).squeeze(-1))
+    return dn, dg
+
+
+def _bounds(name: str) -> tuple[float, float]:
+    return BOUNDS.get(name, (0.0, math.inf))
+
+
+def _to_u(name: str, value: float) -> float:
+    return math.log(value) if name in _LOG_PARAMS else value
+
+
+def _from_u(name: str, u: float) -> float:
+    lo, hi = _bounds(name)
+    v = math.exp(min(u, 50.0)) if name in _LOG_PARAMS else u
+    return min(max(v, lo), hi)
+
+
+def _fd_step(name: str, value: float) -> float:
+    """Signed forward-difference step in the search coordinate (backward at an upper bound)."""
+    if name == "kappa":
+        h = max(0.02 * value, 0.5)
+    elif name in _FD_STEP:
+        h = _FD_STEP[name]
+    else:  # albedos, linear
+        h = 1e-3 * max(abs(value), 1e-3)
+    _, hi = _bounds(name)
+    return -h if _from_u(name, _to_u(name, value) + h) >= hi else h
+
+
+def _pinned(names: tuple[str, ...], vals: dict[str, float], step: list[float]) -> list[int]:
+    """Indices of the globals that sit at a bound and whose step points outward (an active bound)."""
+    out = []
+    for i, (name, d) in enumerate(zip(names, step)):
+        lo, hi = _bounds(name)
+        v = vals[name]
+        if (d < 0 and v <= lo * (1 + 1e-9) + 1e-12) or (d > 0 and v >= hi * (1 - 1e-9)):
+            out.append(i)
+    return out
+
+
+def _hold(pinned: list[int], h_ng: Tensor, h_gg: Tensor, b_g: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """(H_ng, H_gg, b_g) with the ``pinned`` globals decoupled and given a zero step."""
+    h_ng, h_gg, b_g = h_ng.clone(), h_gg.clone(), b_g.clone()
+    idx = torch.tensor(pinned, device=h_gg.device)
+    h_ng[..., idx] = 0.0
+    h_gg[idx, :] = 0.0
+    h_gg[:, idx] = 0.0
+    h_gg[idx, idx] = 1.0
+    b_g[idx] = 0.0
+    return h_ng, h_gg, b_g
+
+
+def _max_step(name: str, value: float) -> float:
+    return _MAX_STEP.get(name, 0.5 * max(abs(value), 1e-3))
+
+
+@dataclass(frozen=True)
+class _Model:
+    """What stays fixed during a solve: observations, the fitted names and the loss settings."""
+
+    obs: Observations
+    table_names: tuple[str, ...]
+    linear_names: tuple[str, ...]
+    per_pixel: bool
+    polarised: bool
+    delta: float
+    n_grid: int
+    jac_grid: int
+
+    def tables(self, vals: dict[str, float], layout_of: dict[str, float] | None = None) -> FMBRDFTables:
+        """Tables of ``vals`` laid out at ``layout_of`` (default: ``vals`` themselves)."""
+        lay = vals if layout_of is None else layout_of
+        kap_layout = max(lay["kappa"], _KAPPA_LAYOUT_MIN) if "kappa" in self.table_names else lay["kappa"]
+        return build_tables(ior=vals["ior"], alpha=vals["alpha"], beta=vals["beta"], kappa=vals["kappa"],
+                            device=self.obs.stokes.device, n_grid=self.n_grid,
+                            layout=(lay["alpha"], lay["beta"], kap_layout))
+
+    def problem(self, tables: FMBRDFTables, vals: dict[str, float]) -> NormalProblem:
+        return NormalProblem.build(tables, self.obs.stokes, vals["k_s"], self.per_pixel, vals["k_b"],
+                                   self.polarised, self.delta)
+
+
+@dataclass
+class _State:
+    """The current point: globals, tables, normals, their rendered parts, residuals and loss."""
+
+    vals: dict[str, float]
+    problem: NormalProblem
+    n: Tensor  # (P, 3)
+    surf: Tensor  # (P, K, 3)
+    body: Tensor  # (P, K, 3)
+    r: Tensor  # (P, K, 3)
+    k_b: Tensor  # (P,)
+    loss_pp: Tensor  # (P,)
+
+
+def _state(model: _Model, vals: dict[str, float], n: Tensor) -> _State:
+    problem = model.problem(model.tables(vals), vals)
+    surf, body = render_parts(problem.tables, n, model.obs)
+    r, k_b = problem.residual_of_parts(surf, body, model.obs)
+    return _State(vals, problem, n, surf, body, r, k_b, problem.loss(r))
+
+
+def _jacobians(model: _Model, st: _State, step_h: float) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Forward-difference Jacobians of the flat residuals (P, M): normals (P, M, 2), globals (P, M, G),
+    and the tangent basis (t1, t2) of the normal steps."""
+    obs, p = model.obs, st.n.shape[0]
+    r0 = st.r.reshape(p, -1)
+    jn, t1, t2 = normal_jacobian(st.problem, st.n, r0, obs, step_h)
+    cols = []
+    if model.table_names:
+        # coarse tables (``jac_grid``) on the base point's layout: cheap, and smooth in the parameter
+        coarse = replace(model, n_grid=model.jac_grid)
+        r_c = coarse.problem(coarse.tables(st.vals), st.vals).residual(st.n, obs)[0].reshape(p, -1)
+        for name in model.table_names:
+            h = _fd_step(name, st.vals[name])
+            vals = {**st.vals, name: _from_u(name, _to_u(name, st.vals[name]) + h)}
+            r_i = coarse.problem(coarse.tables(vals, layout_of=st.vals), vals).residual(st.n, obs)[0].reshape(p, -1)
+            cols.append((r_i - r_c) / h)
+    for name in model.linear_names:
+        h = _fd_step(name, st.vals[name])
+        vals = {**st.vals, name: st.vals[name] + h}
+        r_i = model.problem(st.problem.tables, vals).residual_of_parts(st.surf, st.body, obs)[0].reshape(p, -1)
+        cols.append((r_i - r0) / h)
+    return jn, torch.stack(cols, -1), t1, t2
+
+
+def _mean(loss_pp: Tensor, obs: Observations) -> Tensor:
+    return loss_pp.sum() / obs.weight.sum().clamp_min(1.0)
+
+
+def joint_solve(normals: Tensor, obs: Observations, params: FMBRDFParams, *, names: tuple[str, ...] | list[str],
+                per_pixel_albedo: bool = True, polarised: bool = True, delta: float = 0.01, max_iter: int = 20,
+                tol: float = 1e-5, step_h: float = 2e-3, max_step: float = 0.25, n_grid: int = 65,
+                jac_grid: int = 33) -> JointResult:
+    """Normals and material by one Levenberg–Marquardt with the Schur complement (module docstring).
+
+    Args:
+        normals: (P, 3) unit start normals, camera frame. obs: the P pixels' observations.
+        params: the start material (its k_s starts the linear search; κ is kept unless fitted).
+        names: the table parameters to fit (of :data:`TABLE_PARAMS`); k_s is always fitted, and one
+            global k_b when not ``per_pixel_albedo``.
+        per_pixel_albedo: k_b per pixel in closed form (else one global k_b, fitted).
+        polarised: fit s1, s2 too (else intensity only).
+        delta: Huber threshold on the channel-weighted Stokes residual.
+        max_iter: most LM iterations. tol: relative loss change that ends the solve.
+        step_h: normal forward-difference step; max_step: largest normal step (tangent units).
+        n_grid: body-table grid of the loss; jac_grid: the (coarser, cheaper) one of the globals' Jacobian.
+
+    Returns:
+        :class:`JointResult`.
+    """
+    t0 = time.perf_counter()
+    unknown = [n for n in names if n not in TABLE_PARAMS]
+    if unknown:
+        raise ValueError(f"joint_solve names must be among {TABLE_PARAMS}; got {unknown}")
+    model = _Model(obs, tuple(n for n in TABLE_PARAMS if n in names), ("k_s",) if per_pixel_albedo else ("k_s", "k_b"),
+                   per_pixel_albedo, polarised, float(delta), n_grid, jac_grid)
+    fitted = model.table_names + model.linear_names
+    dev, p = normals.device, normals.shape[0]
+    history: list[dict] = []
+    with torch.no_grad():
+        vals0 = {k: float(getattr(params, k)) for k in (*TABLE_PARAMS, "k_s", "k_b")}
+        st = _state(model, vals0, unit(normals))
+        # the linear globals start at their closed-form optimum for the start normals and material
+        k_s, k_b = solve_albedos(st.surf, st.body, obs, per_pixel=per_pixel_albedo, polarised=polarised)
+        vals0.update(k_s=float(k_s), k_b=vals0["k_b"] if per_pixel_albedo else float(k_b[0]))
+        st = _state(model, vals0, st.n)
+        total = float(_mean(st.loss_pp, obs))
+        initial = total
+        lam_g = 1e-3
+        lam_n = torch.full((p,), 1e-3, dtype=torch.float64, device=dev)
+        rel, it = 0.0, 0
+        for it in range(1, max_iter + 1):
+            jn, jg, t1, t2 = _jacobians(model, st, step_h)
+            r0 = st.r.reshape(p, -1).double()
+            w = irls_weights(st.problem, r0)  # (P, M)
+            jn, jg = jn.double(), jg.double()
+            jnw = jn * w.unsqueeze(-1)
+            h_nn, h_ng = jnw.transpose(1, 2) @ jn, jnw.transpose(1, 2) @ jg  # (P, 2, 2), (P, 2, G)
+            jgw = jg * w.unsqueeze(-1)
+            h_gg = torch.einsum("pmi,pmj->ij", jgw, jg)
+            b_n, b_g = (jnw * r0.unsqueeze(-1)).sum(1), (jgw * r0.unsqueeze(-1)).sum((0, 1))
+            rel, accepted, moved = 0.0, False, 0.0
+            for _attempt in range(6):
+                dn, dg = schur_step(h_nn, h_ng, h_gg, b_n, b_g, lam_n, lam_g)
+                dg_host = dg.tolist()  # the tables are built from the globals: G numbers to the host
+                pinned = _pinned(fitted, st.vals, dg_host)
+                if pinned:  # a global at its bound pushed outward: solve again with it held
+                    h_ng_p, h_gg_p, b_g_p = _hold(pinned, h_ng, h_gg, b_g)
+                    dn, dg = schur_step(h_nn, h_ng_p, h_gg_p, b_n, b_g_p, lam_n, lam_g)
+                    dg_host = dg.tolist()
+                dn = dn * (max_step / dn.norm(dim=-1).clamp_min(max_step)).unsqueeze(-1)
+                vals = dict(st.vals)
+                for name, d in zip(fitted, dg_host):
+                    lim = _max_step(name, st.vals[name])
+                    vals[name] = _from_u(name, _to_u(name, st.vals[name]) + max(min(d, lim), -lim))
+                dn = dn.to(st.n.dtype)
+                n_new = unit(st.n + dn[:, :1] * t1 + dn[:, 1:] * t2)
+                trial_new = _state(model, vals, n_new)
+                trial_old = _state(model, vals, st.n)
+                keep_new = ((n_new * obs.view).sum(-1) > 0) & torch.isfinite(trial_new.loss_pp) & (
+                    trial_new.loss_pp < trial_old.loss_pp)
+                loss_pp = torch.where(keep_new, trial_new.loss_pp, trial_old.loss_pp)
+                # the one convergence / acceptance check (with the share of pixels that took their step)
+                total_t, moved_t = torch.stack([_mean(loss_pp, obs).double(), keep_new.double().mean()]).tolist()
+                better = keep_new | (trial_new.loss_pp < st.loss_pp)
+                if math.isfinite(total_t) and total_t < total:
+                    rel = (total - total_t) / max(total, 1e-300)
+                    kn, kn3 = keep_new[:, None], keep_new[:, None, None]
+                    st = _State(vals, trial_new.problem, torch.where(kn, n_new, st.n),
+                                torch.where(kn3, trial_new.surf, trial_old.surf),
+                                torch.where(kn3, trial_new.body, trial_old.body),
+                                torch.where(kn3, trial_new.r, trial_old.r),
+                                torch.where(keep_new, trial_new.k_b, trial_old.k_b), loss_pp)
+                    total, accepted = total_t, True
+                    moved = moved_t
+                    lam_g = max(lam_g / 3, 1e-7)
+                    lam_n = torch.where(keep_new, (lam_n / 3).clamp_min(1e-7), (lam_n * 4).clamp_max(1e7))
+                    break
+                lam_g = min(lam_g * 10, 1e10)
+                lam_n = torch.where(better, lam_n, (lam_n * 4).clamp_max(1e7))
+            history.append({"iteration": it, "loss": total, "rel_change": rel, "lambda": lam_g,
+                            "accepted": accepted, "moved": moved, "seconds": time.perf_counter() - t0,
+                            **{k: st.vals[k] for k in fitted}})
+            logger.debug("joint %d: loss %.6g (rel %.2e) %s", it, total, rel, {k: st.vals[k] for k in fitted})
+            if not accepted or rel < tol:
+                break
+    k_b = st.k_b
+    out = FMBRDFParams(**{k: st.vals[k] for k in (*TABLE_PARAMS, "k_s", "k_b")})
+    if per_pixel_albedo:
+        pos = k_b > 0
+        out.k_b = float(k_b[pos].median()) if bool(pos.any()) else 0.0
+    return JointResult(out, st.n, k_b, total, initial, it, rel, rel < tol, history, time.perf_counter() - t0)
+
+
+def nested_kappa(start: JointResult, obs: Observations, **kwargs: object) -> tuple[JointResult, float]:
+    """Add κ to a κ = 0 optimum: the joint solve from ``start`` (its normals and material, κ = 0)
+    with κ among the fitted names; the loss can only fall from the start (module docstring).
+
+    Args:
+        start: the κ = 0 solve. obs: its observations. kwargs: :func:`joint_solve`'s keywords
+            (``names`` gets ``kappa`` added).
+
+    Returns:
+        The κ solve and its relative gain (start loss − final loss) / start loss ≥ 0, both losses
+        on the κ solve's tables.
+    """
+    names = tuple(kwargs.pop("names", ())) + ("kappa",)  # type: ignore[arg-type]
+    fit = joint_solve(start.normals, obs, replace(start.params, kappa=0.0), names=names, **kwargs)  # type: ignore[arg-type]
+    gain = (fit.initial_loss - fit.loss) / max(fit.initial_loss, 1e-300)
+    return fit, gain

@@ -1,0 +1,127 @@
+"""Tests of polarshape.recover.joint_solve: the Schur-complement step, the joint fit on a small
+sphere against the alternation, and κ as a nested fit."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import pytest
+import torch
+
+from polarshape.brdf.params import FMBRDFParams
+from polarshape.metrics import angular_error_deg
+from polarshape.recover.coarse_to_fine import solve_fmbrdf
+from polarshape.recover.joint_solve import joint_solve, nested_kappa, schur_step
+from polarshape.recover.observations import Observations, flatten_observations
+from polarshape.recover.options import RecoveryOptions
+
+from test_coarse_to_fine import _sphere_inputs
+
+
+def test_schur_step_equals_the_dense_damped_step() -> None:
+    gen = torch.Generator().manual_seed(3)
+    p, g, m = 5, 4, 9
+    jn = torch.randn(p, m, 2, generator=gen, dtype=torch.float64)
+    jg = torch.randn(p, m, g, generator=gen, dtype=torch.float64)
+    r = torch.randn(p, m, generator=gen, dtype=torch.float64)
+    w = torch.rand(p, m, generator=gen, dtype=torch.float64) + 0.1
+    lam_n = torch.rand(p, generator=gen, dtype=torch.float64)
+    lam_g = 0.3
+    # the dense Jacobian of the whole problem: pixel p's residuals depend on its own 2 columns and the G globals
+    dense = torch.zeros(p * m, 2 * p + g, dtype=torch.float64)
+    for i in range(p):
+        dense[i * m:(i + 1) * m, 2 * i:2 * i + 2] = jn[i]
+        dense[i * m:(i + 1) * m, 2 * p:] = jg[i]
+    wf, rf = w.flatten(), r.flatten()
+    h = dense.T @ (wf[:, None] * dense)
+    b = dense.T @ (wf * rf)
+    lam = torch.cat([lam_n.repeat_interleave(2), torch.full((g,), lam_g, dtype=torch.float64)])
+    full = -torch.linalg.solve(h + torch.diag(lam * (h.diagonal() + 1e-12)), b)
+    jnw = jn * w[..., None]
+    jgw = jg * w[..., None]
+    dn, dg = schur_step(jnw.transpose(1, 2) @ jn, jnw.transpose(1, 2) @ jg, torch.einsum("pmi,pmj->ij", jgw, jg),
+                        (jnw * r[..., None]).sum(1), (jgw * r[..., None]).sum((0, 1)), lam_n, lam_g)
+    assert torch.allclose(dn.flatten(), full[:2 * p], atol=1e-10, rtol=1e-9)
+    assert torch.allclose(dg, full[2 * p:], atol=1e-10, rtol=1e-9)
+
+
+def _shiny_sphere() -> tuple[object, torch.Tensor, torch.Tensor]:
+    inputs, truth = _sphere_inputs(16, alpha=0.1)
+    start = torch.nn.functional.normalize(truth + torch.tensor([0.06, -0.04, 0.0], dtype=torch.float64), dim=-1)
+    start = torch.where(inputs.mask[..., None], start, torch.tensor([0.0, 0.0, -1.0], dtype=torch.float64))
+    return inputs, truth, start
+
+
+def test_joint_solve_recovers_material_and_normals_and_converges() -> None:
+    inputs, truth = _sphere_inputs(16, alpha=0.3)
+    gen = torch.Generator().manual_seed(0)
+    inputs = replace(inputs, stokes=inputs.stokes + 1e-3 * torch.randn(inputs.stokes.shape, generator=gen,
+                                                                       dtype=torch.float64))
+    m = inputs.mask
+    start = torch.nn.functional.normalize(truth[m] + torch.tensor([0.06, -0.04, 0.0], dtype=torch.float64), dim=-1)
+    obs = flatten_observations(inputs, m)
+    fit = joint_solve(start, obs, FMBRDFParams(ior=1.4, alpha=0.2, beta=2.5), names=("ior", "alpha", "beta"),
+                      delta=3e-3, max_iter=20, tol=1e-5)
+    assert fit.converged and fit.iterations <= 15, (fit.iterations, fit.rel_change)
+    assert fit.loss <= fit.initial_loss
+    assert all(b["loss"] <= a["loss"] for a, b in zip(fit.history, fit.history[1:]))  # never rises
+    assert abs(fit.params.alpha - 0.3) < 0.01 and abs(fit.params.ior - 1.5) < 0.02, fit.params
+    assert float(angular_error_deg(fit.normals, truth[m]).mean()) < 0.5
+
+
+@pytest.mark.slow
+def test_joint_level_at_least_as_good_as_the_alternation() -> None:
+    inputs, truth, start = _shiny_sphere()
+    m = inputs.mask
+    out = {}
+    for solver in ("joint", "alternating"):
+        state, log = solve_fmbrdf(inputs, start, RecoveryOptions(model="fmbrdf", fit_kappa=False, solver=solver,
+                                                                max_outer_iterations=20))
+        out[solver] = (float(angular_error_deg(state.normals[m], truth[m]).mean()), abs(state.params.alpha - 0.1))
+        if solver == "joint":
+            assert log.counts["joint_iterations"] >= 1 and "joint" in log.timings
+            assert any(h.get("solver") == "joint" for h in log.history)
+    assert out["joint"][0] <= out["alternating"][0] + 1e-6, out
+    assert out["joint"][1] <= out["alternating"][1] + 1e-6, out
+
+
+@pytest.mark.slow
+def test_nested_kappa_never_raises_the_loss_and_finds_kappa() -> None:
+    inputs, truth = _sphere_inputs(10, alpha=0.3, kappa=40.0)
+    m = inputs.mask
+    obs = flatten_observations(inputs, m)
+    base = joint_solve(truth[m], obs, FMBRDFParams(ior=1.5, alpha=0.3, beta=2.0), names=("ior", "alpha", "beta"),
+                       delta=1e-3, max_iter=3, n_grid=33, jac_grid=17)
+    fit, gain = nested_kappa(base, obs, names=("ior", "alpha", "beta"), delta=1e-3, max_iter=5, n_grid=33, jac_grid=17)
+    assert gain >= 0.0 and fit.loss <= fit.initial_loss
+    assert abs(fit.initial_loss - base.loss) <= 1e-3 * base.loss  # the κ fit starts at the κ = 0 optimum
+    assert gain > 0.5 and fit.params.kappa > 10.0, (gain, fit.params)
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_joint_solve_on_cuda_matches_cpu() -> None:
+    inputs, truth = _sphere_inputs(12, alpha=0.3)
+    m = inputs.mask
+    obs = flatten_observations(inputs, m)
+    start = torch.nn.functional.normalize(truth[m] + torch.tensor([0.05, -0.03, 0.0], dtype=torch.float64), dim=-1)
+    kw = {"names": ("ior", "alpha", "beta"), "delta": 1e-3, "max_iter": 5}
+    fits = {}
+    for dev in ("cpu", "cuda"):
+        obs_d = Observations(*(t.float().to(dev) for t in (obs.stokes, obs.weight, obs.lights, obs.irradiance,
+                                                             obs.view)))
+        fits[dev] = joint_solve(start.float().to(dev), obs_d, FMBRDFParams(ior=1.4, alpha=0.25, beta=2.5), **kw)
+    cpu, gpu = fits["cpu"], fits["cuda"]
+    assert gpu.normals.device.type == "cuda"
+    assert abs(gpu.params.alpha - cpu.params.alpha) < 1e-3 and abs(gpu.params.ior - cpu.params.ior) < 1e-3
+
+
+@pytest.mark.slow
+def test_joint_level_kappa_decision_on_kappa_free_data_keeps_zero_and_reports_no_rise() -> None:
+    inputs, truth = _sphere_inputs(12)
+    start = torch.where(inputs.mask[..., None], truth, torch.tensor([0.0, 0.0, -1.0], dtype=torch.float64))
+    state, log = solve_fmbrdf(inputs, start, RecoveryOptions(model="fmbrdf", solver="joint", max_outer_iterations=3))
+    said = [s for s in log.skipped if s.startswith("kappa:")]
+    assert state.params.kappa == 0.0 and len(said) == 1, log.skipped
+    assert "by -" not in said[0] and "nested" in said[0], said
+    assert log.counts["kappa_probes"] == 1
