@@ -10,50 +10,18 @@ import numpy as np
 import pytest
 import yaml
 
-from polarshape.acquisition.camera import Frame
-from polarshape.acquisition.lights import RigLight, SimulatedLightRig
+from polarshape.acquisition.lights import RigLight
 from polarshape.acquisition.session import capture_session, load_session_config, run_capture_session
 from polarshape.errors import CaptureError
 from polarshape.io.capture import CAPTURE_FORMAT_BRACKETS, load_capture
 from polarshape.recover.preprocess import preprocess_capture
 
+from session_stubs import FailingRig as _FailingRig  # noqa: E402 - the stubs beside these tests
+from session_stubs import StubCamera as _StubCamera  # noqa: E402
+
 REPO = Path(__file__).resolve().parents[2]
 SPECS = [RigLight(direction=(np.sin(t), 0.1, -np.cos(t)), intensity=1.0) for t in np.linspace(0.1, 0.8, 4)]
 EXPOSURES = [8000.0, 1000.0, 125.0]
-
-
-class _StubCamera:
-    """Counts ∝ exposure × (light + 1) on a ramp, 12-bit, clipped; records (light, exposure) per frame."""
-
-    def __init__(self) -> None:
-        self.light, self.exposure_us, self.captured = 0, 1000.0, []
-
-    def configure(self, *, exposure_us: float | None = None, gain_db: float | None = None,
-                  pixel_format: str | None = None) -> None:
-        if exposure_us is not None:
-            self.exposure_us = exposure_us
-
-    def set_light(self, index: int) -> None:
-        self.light = index
-
-    def capture(self, timeout_s: float = 5.0) -> Frame:
-        ramp = np.linspace(0.0, 1.0, 48 * 64).reshape(48, 64)
-        counts = np.minimum(4095, np.rint(ramp * self.exposure_us * (self.light + 1) * 0.2)).astype(np.uint16)
-        self.captured.append((self.light, self.exposure_us))
-        return Frame(image=counts, bit_depth=12, pixel_format="PolarizeMono12", exposure_us=self.exposure_us,
-                     gain_db=0.0, frame_id=len(self.captured))
-
-
-class _FailingRig(SimulatedLightRig):
-    def __init__(self, *args, fail_at: int | None = None, **kwargs) -> None:  # noqa: ANN002, ANN003
-        super().__init__(*args, **kwargs)
-        self.fail_at, self.switched = fail_at, []
-
-    def switch(self, index: int) -> None:
-        if index == self.fail_at:
-            raise KeyboardInterrupt("operator pressed Ctrl-C")
-        self.switched.append(index)
-        super().switch(index)
 
 
 def test_session_takes_every_exposure_and_resumes(tmp_path: Path) -> None:
