@@ -20,7 +20,9 @@ from typing import Any
 import numpy as np
 import torch
 
-from polarshape.io.export import write_normal_map_png, write_normals_exr, write_npy, write_scalar_map_png
+from polarshape.io.export import (
+    write_normal_map_png, write_normals_exr, write_npy, write_rgb_png, write_scalar_map_png,
+)
 from polarshape.io.atomic import atomic_write_text
 from polarshape.io.images import write_image
 
@@ -80,7 +82,7 @@ def write_material_maps(folder: Path, *, materials: np.ndarray, mixed: np.ndarra
     write_npy(materials.astype(np.int16), folder / "materials.npy")
     palette = np.asarray(MATERIAL_COLOURS, dtype=np.uint8)  # (C, 3)
     rgb = np.where((materials >= 0)[..., None], palette[np.clip(materials, 0, None) % len(palette)], 0)
-    write_image(folder / "materials.png", rgb.astype(np.uint8))
+    write_rgb_png(rgb.astype(np.uint8), folder / "materials.png")
     if mixed is not None:
         write_image(folder / "mixed.png", np.where(mixed, 255, 0).astype(np.uint8))
 

@@ -146,3 +146,15 @@ def test_a_backdrop_behind_the_object_does_not_excuse_a_light_behind_it():
     objects = [*BASE["objects"], backdrop]
     with pytest.raises(ValueError, match=r"lights\[0\]\.position .*objects\[0\], z = 1 m"):
         parse_scene_config(_with(objects=objects, lights=[{"position": [0, 0, 1.5]}]))
+
+
+def test_a_split_gives_an_object_a_second_material():
+    split = {"normal": [1, 0, 0], "offset": 0.0, "material": {"model": "fmbrdf", "alpha": 0.08, "ior": 1.6}}
+    config = parse_scene_config(_with(objects=[{**BASE["objects"][0], "material": {"model": "fmbrdf", "alpha": 0.45},
+                                                "split": split}]))
+    obj = config.build_scene().objects[0]
+    assert [m.alpha for m in obj.materials] == [0.45, 0.08]
+    with pytest.raises(ValueError, match="split.normal"):
+        parse_scene_config(_with(objects=[{**BASE["objects"][0], "split": {**split, "normal": [0, 0, 0]}}]))
+    two = load_scene_config(SCENES / "two_materials_blob.yaml")
+    assert two.objects[0].split is not None and two.objects[0].split.material.alpha == 0.08
