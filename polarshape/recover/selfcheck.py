@@ -398,7 +398,11 @@ def _check_bounds(checks: SelfChecks, result: RecoveryResult, fitted_material: b
     if result.model != "fmbrdf" or not fitted_material:
         checks.measured["bounds"] = []
         return
-    hits = _at_bounds(result.params)
+    several = getattr(result, "material_params", None) or []
+    if len(several) > 1:  # an object of several materials: every material's bounds
+        hits = [f"material {m}: {hit}" for m, p in enumerate(several) for hit in _at_bounds(p)]
+    else:
+        hits = _at_bounds(result.params)
     checks.measured["bounds"] = hits
     if hits:
         checks._warn(ParameterBoundWarning, (
