@@ -89,6 +89,7 @@ def evaluate(result: NormalsResult, capture: Capture, truth: list[dict[str, floa
         "seconds": seconds, "materials_found": len(found),
         "mean_error_deg": float(err.mean()), "median_error_deg": float(err.median()),
         "mean_error_lit_deg": float(angular_error_deg(result.normals.double()[m & lit], gt[m & lit]).mean()),
+        "recovery_timings_s": {k: float(v) for k, v in result.timings.items()},
         "materials": [{"matched_truth": t, **{k: f.get(k) for k in ("ior", "alpha", "beta", "kappa", "k_s")}}
                       for f, t in zip(found, match)],
     }
