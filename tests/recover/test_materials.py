@@ -112,7 +112,7 @@ def test_one_material_stays_one_and_materials_1_is_todays_solve() -> None:
 
 @pytest.mark.slow
 def test_two_materials_found_and_assigned() -> None:
-    inputs, normals, labels = _cap_inputs(24, (ROUGH, GLOSSY), noise=5e-4)
+    inputs, normals, labels = _cap_inputs(24, (ROUGH, GLOSSY), noise=2e-4)
     ps = _start(normals)
     options = RecoveryOptions(max_outer_iterations=6, subsample_pixels=256, fit_kappa=False)
     got = solve_materials(inputs, ps, options)
