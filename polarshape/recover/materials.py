@@ -358,7 +358,7 @@ def region_inputs(inputs: RecoveryInputs, region: Tensor) -> RecoveryInputs:
     return replace(inputs, mask=region, valid=inputs.valid & region.unsqueeze(0))
 
 
-def _reassign(inputs: RecoveryInputs, materials: list[FMBRDFParams], normals: Tensor, labels: Tensor,
+def _reassign(inputs: RecoveryInputs, materials: list[FMBRDFParams], normals: Tensor, labels: Tensor | None,
               options: RecoveryOptions, delta: float, sigma2: float) -> tuple[Tensor, Tensor, Tensor]:
     """Every pixel's normal refined under every material; pixels reassigned by Potts ICM.
 
@@ -455,7 +455,7 @@ def solve_materials(inputs: RecoveryInputs, initial_normals: Tensor, options: Re
     t0 = time.perf_counter()
     normals = torch.where(torch.isfinite(state.normals), state.normals, initial_normals)
     with torch.no_grad():
-        normals, k_b, labels = _reassign(inputs, materials, normals, None, options, delta, sigma2)  # type: ignore[arg-type]
+        normals, k_b, labels = _reassign(inputs, materials, normals, None, options, delta, sigma2)
     log.add_time("materials_reassign", t0)
     for rnd in range(REFINE_ROUNDS):
         before = labels
