@@ -60,7 +60,7 @@ __all__ = [
     "solve_materials",
 ]
 
-#: Assign / re-fit alternations of one split (normals held).
+#: Assign / re-fit alternations of one split (on the lattice).
 SPLIT_ROUNDS = 2
 #: Most solve-and-reassign rounds once M ≥ 2 is chosen (fewer when the labels hold).
 REFINE_ROUNDS = 3
@@ -77,10 +77,11 @@ MATERIAL_PARAMETERS = 5
 #: A split must also lower the energy by this fraction: the BIC term alone assumes the model is
 #: right, and a one-material fit's model error (another BRDF than the FMBRDF, demosaicing at edges,
 #: grazing light, normals not yet converged) can always be bought down by one more material — by a
-#: fraction that does not fall with the noise. Measured relative gains: true splits 0.71 (the
-#: two-material blob at 80²), 0.55 (a 24² synthetic sphere cap, tests); spurious ones 0.37 and 0.27
+#: fraction that does not fall with the noise. Measured relative gains: true splits 0.64–0.73 (the
+#: two-material blob at 80²), 0.74 (a 24² synthetic sphere cap, tests); spurious ones 0.37 and 0.27
 #: (spheres rendered with Baek's pBRDF, Beckmann and GGX), 0.21 (the shared Mitsuba sphere), 0.03
-#: (a checkered sphere), 0.04 and 0.016 (a third material on the cap and on the blob).
+#: (a checkered sphere), 0.04 and 0.016 (a third material on the cap and on the blob); y-flipped
+#: lights 0.55, refused by :func:`_bound_hits`.
 MIN_RELATIVE_GAIN = 0.45
 #: LM iterations of each pixel's normal under each candidate material during a split.
 SPLIT_LM_ITERATIONS = 3
