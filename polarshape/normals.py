@@ -11,7 +11,9 @@ Steps (each timed in ``NormalsResult.timings``, each omission recorded in ``skip
    is ``fmbrdf``: the material says what the object is;
 4. **FMBRDF path** — material and normals coarse to fine
    (:func:`polarshape.recover.coarse_to_fine.solve_fmbrdf`; a known material fixed or as the
-   start, :class:`polarshape.recover.coarse_to_fine.KnownMaterial`), then pixels without data filled from
+   start, :class:`polarshape.recover.coarse_to_fine.KnownMaterial`) — as many materials as the
+   object has, each on its own pixels (``recovery.materials``,
+   :func:`polarshape.recover.materials.solve_materials`) — then pixels without data filled from
    their neighbours (:func:`polarshape.recover.priors.fill_unsupported`) and, when asked, the
    smoothness prior (:func:`polarshape.recover.priors.smooth_normals`);
    **Lambertian path** — the PS normals and albedo, pixels without data filled the same way,
@@ -30,7 +32,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import torch
@@ -43,8 +45,9 @@ from polarshape.errors import CaptureError
 from polarshape.imaging.stokes import dolp
 from polarshape.io.capture import Capture
 from polarshape.io.material import load_material
-from polarshape.recover.coarse_to_fine import FMBRDFState, KnownMaterial, SolveLog, solve_fmbrdf
+from polarshape.recover.coarse_to_fine import FMBRDFState, KnownMaterial, SolveLog
 from polarshape.recover.colour import colour_albedo
+from polarshape.recover.materials import MaterialsState, region_inputs, solve_materials
 from polarshape.recover.normal_solver import CHUNK_PIXELS
 from polarshape.recover.observations import RecoveryInputs, crop_inputs, flatten_observations, paste_crop
 from polarshape.recover.options import InitialNormalsOptions, RecoveryOptions
@@ -82,6 +85,12 @@ class NormalsResult:
             material_fits, material_fit_iterations, kappa_probes, albedo_solves).
         albedo_rgb: (H, W, 3) body albedo per colour channel R, G, B of a colour capture (same units
             as ``albedo``, their mean), NaN outside ``mask``; None for a mono capture.
+        materials: (H, W) int64 material of each pixel (index into ``material_params``), −1 outside
+            the mask; None for the Lambertian model. With several materials ``params`` is the one
+            with the most pixels (:mod:`polarshape.recover.materials`).
+        material_params: every material's parameters (one dict per material, as ``params``).
+        mixed: (H, W) bool pixels on a material edge (left out of the material fits), or None.
+        material_selection: one record per split the model choice tried (gain, penalty, kept).
     """
 
     normals: Tensor
@@ -99,6 +108,10 @@ class NormalsResult:
     filled: Tensor | None = None
     counts: dict[str, int] = field(default_factory=dict)
     albedo_rgb: Tensor | None = None
+    materials: Tensor | None = None
+    material_params: list[dict[str, float]] = field(default_factory=list)
+    mixed: Tensor | None = None
+    material_selection: list[dict[str, Any]] = field(default_factory=list)
 
 
 @dataclass(frozen=True)
@@ -110,6 +123,7 @@ class _Solution:
     rendered: Tensor  # (K, 3, h, w)
     params: dict[str, float]
     filled: Tensor | None = None
+    materials: MaterialsState | None = None
 
 
 def initial_normals(inputs: RecoveryInputs, options: InitialNormalsOptions = InitialNormalsOptions()) -> RobustPSResult:
@@ -232,25 +246,34 @@ def _fmbrdf_solution(inputs: RecoveryInputs, ps: RobustPSResult, options: Recove
     if not inputs.has_polarisation:
         log.skipped.append("polarisation: no linear polarisation above the noise (no polariser or an unpolarised "
                            "scene): intensity-only fit")
-    state, _ = solve_fmbrdf(inputs, ps.normals, options, seed=seed, progress=progress, log=log,
-                            material=known_material(options))
-    normals, k_b, filled = _fill(inputs, state.normals, state.k_b, log)
+    several = solve_materials(inputs, ps.normals, options, seed=seed, progress=progress, log=log,
+                              material=known_material(options))
+    normals, k_b, filled = _fill(inputs, several.normals, several.k_b, log)
     if not bool(filled.any()):
-        normals, k_b = state.normals, state.k_b
+        normals, k_b = several.normals, several.k_b
+    # (a filled pixel's material: the Potts prior gave it its neighbours', its own data being too few)
+    several = replace(several, normals=normals, k_b=k_b)
+    one = len(several.params) == 1
     if options.smoothness > 0:
         t0 = time.perf_counter()
-        normals, k_b = smooth_normals(inputs, normals, k_b, state.params, per_pixel_albedo=options.per_pixel_albedo,
-                                      smoothness=options.smoothness)
+        for m, p in enumerate(several.params):  # each material's pixels with their own material
+            region = inputs if one else region_inputs(inputs, several.labels == m)
+            normals, k_b = smooth_normals(region, normals, k_b, p, per_pixel_albedo=options.per_pixel_albedo,
+                                          smoothness=options.smoothness)
+        several = replace(several, normals=normals, k_b=k_b)
         log.add_time("smoothing", t0)
     else:
         log.skipped.append("smoothness: 0, per-pixel maximum-likelihood normals (no spatial prior)")
-    state = FMBRDFState(state.params, normals, k_b)
     t0 = time.perf_counter()
-    rendered = _render_fmbrdf(inputs, state)
+    if one:
+        rendered = _render_fmbrdf(inputs, FMBRDFState(several.params[0], normals, k_b))
+    else:  # each material renders its own pixels (zeros elsewhere)
+        rendered = torch.stack([_render_fmbrdf(region_inputs(inputs, several.labels == m), several.material_state(m))
+                                for m in range(len(several.params))]).sum(0)
     log.add_time("render", t0)
     if not options.per_pixel_albedo:
         log.skipped.append("per_pixel_albedo: disabled by config (one global k_b)")
-    return _Solution(normals, k_b, rendered, state.params.as_dict(), filled)
+    return _Solution(normals, k_b, rendered, several.params[several.largest()].as_dict(), filled, several)
 
 
 def _colour_albedo(inputs: RecoveryInputs, sol: _Solution, model: str, options: RecoveryOptions, log: SolveLog
@@ -316,7 +339,18 @@ def recover_normals(
         history=log.history, timings=log.timings, skipped=log.skipped,
         filled=None if sol.filled is None else paste_crop(sol.filled, crop, inputs, False), counts=dict(log.counts),
         albedo_rgb=None if albedo_rgb is None else paste_crop(albedo_rgb, crop, inputs, channels_last=True),
+        **_material_fields(sol, crop, inputs),
     )
+
+
+def _material_fields(sol: _Solution, crop: RecoveryInputs, inputs: RecoveryInputs) -> dict[str, Any]:
+    """NormalsResult's material map, parameters, edges and selection record on the full grid."""
+    several = sol.materials
+    if several is None:
+        return {}
+    return {"materials": paste_crop(several.labels, crop, inputs, -1).to(torch.int64),
+            "material_params": [p.as_dict() for p in several.params],
+            "mixed": paste_crop(several.mixed, crop, inputs, False), "material_selection": several.selection}
 
 
 def recover_capture(

@@ -61,8 +61,8 @@ from polarshape.checks import resolve_device, to_numpy
 from polarshape.io.atomic import atomic_directory, atomic_write_text
 from polarshape.io.capture import Capture, load_capture, write_capture
 from polarshape.io.polarimetric import polarimetric_calibration_record
+from polarshape.io.results import RESULT_FORMAT, output_refusal, write_maps, write_material_maps, write_params
 from polarshape.surface.interreflection import estimate_one_bounce
-from polarshape.io.results import RESULT_FORMAT, output_refusal, write_maps, write_params
 from polarshape.metrics import angular_error_deg, angular_error_stats, depth_rmse_aligned
 from polarshape.normals import NormalsResult, recover_normals
 from polarshape.recover.diagnose import dark_capture_cause
@@ -655,6 +655,18 @@ def _colour_capture_record(capture: Capture) -> dict[str, Any]:
     return {} if bayer is None else {"bayer": bayer}
 
 
+def _materials_record(result: NormalsResult) -> dict[str, Any]:
+    """params.json's ``materials`` (every material's parameters and pixel count; ``params`` is the
+    one with the most pixels), ``material_selection`` (the splits tried) and ``mixed_pixels``."""
+    if result.materials is None:
+        return {}
+    return {
+        "materials": [{**p, "pixels": int((result.materials == m).sum())} for m, p in enumerate(result.material_params)],
+        "material_selection": result.material_selection,
+        "mixed_pixels": None if result.mixed is None else int(result.mixed.sum()),
+    }
+
+
 def _params(config: RunConfig, capture: Capture, inputs: RecoveryInputs, result: NormalsResult, surface: Surface,
             mesh_info: dict[str, Any], metrics: dict[str, Any], device: str, work: Path, out: Path) -> dict[str, Any]:
     """The content of params.json (format :data:`polarshape.io.results.RESULT_FORMAT`)."""
@@ -671,6 +683,7 @@ def _params(config: RunConfig, capture: Capture, inputs: RecoveryInputs, result:
         "recovery_timings_s": {str(k): float(v) for k, v in result.timings.items()},
         "recovery_counts": {str(k): int(v) for k, v in result.counts.items()},
         "material": _material_record(config, result),
+        **_materials_record(result),
         "capture": {
             "source": _capture_source(capture, config, work, out),
             "input_type": config.input.type,
@@ -843,6 +856,9 @@ def _run_stages(config: RunConfig, work: Path, out: Path, device: str, log: _Sta
             log.skip("export", item)
         if bounce_map is not None:  # the largest share of each pixel's light that came off the object itself
             write_npy(to_numpy(bounce_map).astype(np.float32), work / "interreflection.npy")
+        if result.materials is not None:
+            write_material_maps(work, materials=to_numpy(result.materials),
+                                mixed=None if result.mixed is None else to_numpy(result.mixed))
         atomic_write_text(work / "config.yaml", yaml.safe_dump(config.model_dump(mode="json"), sort_keys=False))
     with log.stage("evaluation"):
         metrics, error_map = evaluate(capture, result, surface, log)

@@ -50,6 +50,7 @@ from polarshape.imaging.pixels import bit_depth_of
 from polarshape.imaging.stokes import aolp, dolp
 from polarshape.io.atomic import atomic_path, atomic_write_text
 from polarshape.io.material import MATERIAL_UNITS, MaterialError, load_material
+from polarshape.io.results import MATERIAL_COLOURS
 from polarshape.scene.sensor import SensorModel
 
 logger = logging.getLogger(__name__)
@@ -712,6 +713,8 @@ def _scene_material(scene: dict[str, Any]) -> tuple[dict[str, Any], bool] | None
     for obj in scene.get("objects") or []:
         if not isinstance(obj, dict) or not obj.get("in_mask", True):
             continue
+        if obj.get("split") is not None:  # an object of two materials: no one true material
+            return None
         material = dict(obj.get("material") or {})
         if "file" in material:
             try:
@@ -867,6 +870,9 @@ def _text_lines(params: dict[str, Any]) -> list[str]:
     lines += [f"WARNING {name}: {message}" for name, message in warned] or ["no warnings"]
     lines += [f"model: {params.get('model')}"]
     lines += [f"  {k} = {_fmt(v)}" for k, v in (params.get("params") or {}).items()]
+    if len(params.get("materials") or []) > 1:
+        lines += [f"material {i}: " + ", ".join(f"{k} = {_fmt(v)}" for k, v in m.items())
+                  for i, m in enumerate(params["materials"])]
     lines += ["metrics:"] + [f"  {k} = {v}" for k, v in _flat_metrics(params.get("metrics") or {})]
     lines += ["timings (s):"] + [f"  {k}: {v:.2f}" for k, v in (params.get("timings_s") or {}).items()]
     lines += ["skipped:"] + [f"  {s}" for s in params.get("skipped") or []]
@@ -1015,6 +1021,25 @@ def _colour_table(params: dict[str, Any]) -> str:
                   "over the mean of the three medians (the albedo's scale follows the irradiance units)")
 
 
+def _materials_table(params: dict[str, Any]) -> str:
+    """Every material of a run (``params["materials"]``, :mod:`polarshape.recover.materials`): its
+    colour in materials.png, pixels and parameters; the splits the model choice tried."""
+    materials = params.get("materials")
+    if not isinstance(materials, list) or not materials:
+        return ""
+    names = [n for n in ("ior", "alpha", "beta", "kappa", "k_s", "k_b") if any(n in m for m in materials)]
+    rows = [(str(i), "rgb({}, {}, {})".format(*MATERIAL_COLOURS[i % len(MATERIAL_COLOURS)]),
+             _fmt(m.get("pixels")), *(_fmt(m.get(n)) for n in names)) for i, m in enumerate(materials)]
+    tried = "; ".join(f"{r.get('materials')} materials: gain {_fmt(r.get('gain_nll'))} vs penalty "
+                      f"{_fmt(r.get('penalty'))} ({'kept' if r.get('kept') else 'not kept'})"
+                      for r in params.get("material_selection") or [])
+    note = (f"{len(materials)} material(s) (materials.png / materials.npy; 'params' is the one with the most "
+            f"pixels); {_fmt(params.get('mixed_pixels'))} pixels on material edges (mixed.png), left out of the "
+            f"material fits" + (f"; splits tried: {tried}" if tried else ""))
+    return _table("Materials", rows, ["material", "colour in materials.png", "pixels",
+                                      *(_SYMBOLS.get(n, n) for n in names)], note)
+
+
 def _timing_table(params: dict[str, Any]) -> str:
     rows = [(k, f"{v:.3f}") for k, v in (params.get("timings_s") or {}).items() if _number(v) is not None]
     timings = params.get("timings_s") or {}
@@ -1060,6 +1085,7 @@ def _page(data: ReportData) -> str:
         _img(specs["holdout"], "Held-out lights: prediction vs photo"),
         _parameter_table(data),
         _colour_table(p),
+        _materials_table(p),
         _img(specs["polarisation"], "DoLP and AoLP"),
         _img(specs["fit_curves"], "Fit curves"),
         _img(specs["residuals"], "Residual maps"),

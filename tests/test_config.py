@@ -53,10 +53,10 @@ def test_shipped_configs_validate() -> None:
         load_run_config(REPO / "configs" / "real_capture_template.yaml")
     message = str(info.value)
     assert "1 problem(s)" in message and "input.path" in message and "my_object" in message
-    for name in ("blob",):  # the scene examples
+    for name in ("blob", "two_materials"):  # the scene examples
         example = load_run_config(REPO / "configs" / f"{name}.yaml")
         assert example.input.type == "simulated" and Path(example.input.scene).is_file()
-        assert example.recovery.model == "fmbrdf"
+        assert example.recovery.model == "fmbrdf" and example.recovery.materials == "auto"
 
 
 @pytest.mark.parametrize(

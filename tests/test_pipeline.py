@@ -489,3 +489,41 @@ def test_fmbrdf_model_goes_through_the_joint_recovery(capture_config: Path, smal
     assert "recovery: kappa: fixed at 0" in params["skipped"] and params["losses"]["final"]["loss"] == pytest.approx(0.01)
     assert np.load(tmp_path / "res" / "albedo.npy")[seen["mask"]] == pytest.approx(0.4)
     assert (tmp_path / "res" / "report" / "residuals.png").is_file()
+
+
+def test_a_run_of_several_materials_writes_the_material_map(tmp_path, monkeypatch):
+    """The export, params.json and the report carry a run's materials (the recovery's map is set on
+    the run's own result here: the several-material solve itself is tested in tests/recover/test_materials.py)."""
+    import dataclasses
+
+    import polarshape.pipeline as pipeline
+    from polarshape.config import load_run_config
+
+    recover = pipeline.recover_normals
+
+    def two_materials(inputs, *args, **kwargs):
+        result = recover(inputs, *args, **kwargs)
+        labels = torch.where(result.mask, 0, -1)
+        labels[:, labels.shape[1] // 2:] = torch.where(result.mask[:, labels.shape[1] // 2:], 1, -1)
+        mixed = torch.zeros_like(result.mask)
+        mixed[:, labels.shape[1] // 2 - 1: labels.shape[1] // 2 + 1] = True
+        params = [{"ior": 1.6, "alpha": 0.08, "beta": 2.0, "kappa": 0.0, "k_s": 1.0, "k_b": 0.5},
+                  {"ior": 1.45, "alpha": 0.45, "beta": 2.0, "kappa": 0.0, "k_s": 1.0, "k_b": 0.5}]
+        return dataclasses.replace(result, materials=labels, material_params=params, mixed=mixed & result.mask,
+                                   material_selection=[{"materials": 2, "gain_nll": 10.0, "penalty": 1.0,
+                                                        "kept": True}])
+
+    monkeypatch.setattr(pipeline, "recover_normals", two_materials)
+    _small_scene(tmp_path)
+    config_path = _config(tmp_path, input={"type": "simulated", "scene": "small_sphere.yaml", "seed": 3},
+                          validation={"holdout": "none"}, mesh={"poisson": False})
+    out = run_pipeline(load_run_config(config_path), tmp_path / "result", config_path=config_path).out_dir
+    params = json.loads((out / "params.json").read_text())
+    index = np.load(out / "materials.npy")
+    mask = np.load(out / "normals.npy")[..., 0] == np.load(out / "normals.npy")[..., 0]  # finite = in the mask
+    assert index.dtype == np.int16 and set(np.unique(index[mask])) == {0, 1} and bool((index[~mask] == -1).all())
+    assert (out / "materials.png").is_file() and (out / "mixed.png").is_file()
+    assert [m["alpha"] for m in params["materials"]] == [0.08, 0.45]
+    assert sum(m["pixels"] for m in params["materials"]) == int(mask.sum())
+    assert params["mixed_pixels"] > 0 and params["material_selection"][0]["kept"] is True
+    assert "Materials" in (out / "report.html").read_text()

@@ -353,7 +353,8 @@ class SimulatedCamera:
     def ground_truth(self) -> dict[str, np.ndarray]:
         """Ground truth at super-pixel resolution: ``normals`` (H/2, W/2, 3) float32 (NaN off the
         object), ``depth`` (H/2, W/2) float32 (z, metres, NaN off the object), ``mask``
-        (H/2, W/2) bool (super-pixels whose four sites all see the object)."""
+        (H/2, W/2) bool (super-pixels whose four sites all see the object); ``materials`` (H/2, W/2)
+        int16 when the scene has more than one material (:meth:`_material_truth`)."""
         normals, depth, mask = superpixel_ground_truth(self.geometry, self.scene.object_mask(self.geometry))
         truth = {
             "normals": to_numpy(normals, np.float32),
@@ -362,7 +363,21 @@ class SimulatedCamera:
         }
         if self.bayer is not None:
             truth["albedo_rgb"] = to_numpy(self._albedo_rgb(mask), np.float32)
+        if len(self.scene.materials) > 1:
+            truth["materials"] = to_numpy(self._material_truth(mask)).astype(np.int16)
         return truth
+
+    def _material_truth(self, mask: Tensor) -> Tensor:
+        """(H/2, W/2) int64 material of each super-pixel (numbered as
+        :meth:`polarshape.scene.objects.Scene.material_index`): −2 where its four sites see two
+        materials (a material edge), −1 off ``mask``."""
+        index = self.scene.material_index(self.geometry)  # (2H, 2W)
+        h2, w2 = index.shape
+        blocks = index.reshape(h2 // 2, 2, w2 // 2, 2).permute(0, 2, 1, 3).reshape(h2 // 2, w2 // 2, 4)
+        first = blocks[..., 0]
+        same = (blocks == first[..., None]).all(-1)
+        out = torch.where(same, first, torch.full_like(first, -2))
+        return torch.where(mask, out, torch.full_like(first, -1))
 
     def _albedo_rgb(self, mask: Tensor) -> Tensor:
         """(H/2, W/2, 3) body albedo (k_b, or k_d for Lambertian/Baek) per colour channel R, G, B at
@@ -370,10 +385,11 @@ class SimulatedCamera:
         scene, geometry = self.scene, self.geometry
         texture = albedo_scale_map(scene, geometry)  # (2H, 2W)
         rgb = torch.zeros(*texture.shape, 3, dtype=texture.dtype, device=texture.device)  # (2H, 2W, 3)
-        for k, obj in enumerate(scene.objects):
-            sel = geometry.object_index == k  # (2H, 2W)
-            base = float(getattr(obj.material, "k_b", getattr(obj.material, "k_d", math.nan)))
-            factors = texture.new_tensor(colour_albedo_factors(obj.material)) * base  # (3,)
+        materials = scene.material_index(geometry)  # (2H, 2W)
+        for m, material in enumerate(scene.materials):
+            sel = materials == m  # (2H, 2W)
+            base = float(getattr(material, "k_b", getattr(material, "k_d", math.nan)))
+            factors = texture.new_tensor(colour_albedo_factors(material)) * base  # (3,)
             rgb = torch.where(sel[..., None], texture[..., None] * factors, rgb)
         h2, w2 = texture.shape
         sp = rgb.reshape(h2 // 2, 2, w2 // 2, 2, 3).mean(dim=(1, 3))  # (H/2, W/2, 3)
@@ -465,5 +481,6 @@ class SimulatedCamera:
             mask=truth["mask"],
             ground_truth={"normals": truth["normals"], "depth": truth["depth"], "scene": provenance,
                           **({"albedo_rgb": truth["albedo_rgb"]} if "albedo_rgb" in truth else {}),
+                          **({"materials": truth["materials"]} if "materials" in truth else {}),
                           **({"sensor_maps": self._sensor_maps_array(bit_depth)} if self._maps is not None else {})},
         )

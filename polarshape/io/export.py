@@ -39,7 +39,7 @@ logger = logging.getLogger(__name__)
 
 __all__ = [
     "NormalConvention", "read_exr", "read_normal_map_png", "read_normals_exr", "write_exr", "write_normal_map_png",
-    "write_normals_exr", "write_npy", "write_scalar_map_png",
+    "write_normals_exr", "write_npy", "write_rgb_png", "write_scalar_map_png",
 ]
 
 NormalConvention = Literal["opencv", "opengl"]
@@ -72,6 +72,15 @@ def _encode_png(image: NDArray[Any], path: Path) -> bytes:
     if not ok:
         raise OSError(f"{path}: OpenCV could not encode the PNG")
     return buf.tobytes()
+
+
+def write_rgb_png(image: NDArray[Any], path: str | os.PathLike[str], *, overwrite: bool = True) -> Path:
+    """Write an (H, W, 3) RGB uint8 or uint16 image as a PNG, atomically (colour in RGB order, not
+    OpenCV's BGR). Returns the path written."""
+    if image.ndim != 3 or image.shape[2] != 3:
+        raise ValueError(f"an RGB image must have shape (H, W, 3); got {image.shape}")
+    path = Path(path)
+    return atomic_write_bytes(path, _encode_png(image, path), overwrite=overwrite)
 
 
 def _decode_png(path: str | os.PathLike[str]) -> NDArray[Any]:

@@ -4,7 +4,8 @@ Files (spec capture-format.md, README "Result folder"): ``normals.npy`` (H, W, 3
 unit normals, NaN outside the mask; ``normal_map.png`` (16-bit RGBA, alpha 0 outside the mask,
 convention in params.json); ``normals.exr`` (float32 R, G, B = normal, A = mask); ``albedo.npy`` /
 ``albedo.png`` ((H, W), 16-bit grey; a colour capture's (H, W, 3), 16-bit RGB: R, G, B body albedo,
-one linear scale for the three channels, 65535 = the 99.5th percentile of all their values); ``depth.npy``; ``mask.png``; ``filled.png``;
+one linear scale for the three channels, 65535 = the 99.5th percentile of all their values); ``depth.npy``; ``mask.png``; ``filled.png``; ``materials.npy`` / ``materials.png`` /
+``mixed.png`` (:func:`write_material_maps`: which material each pixel is, its edges);
 ``config.yaml``; ``params.json`` (format :data:`RESULT_FORMAT`, with the polarshape version).
 Meshes and the report are written by their own stages into the same (temporary) folder.
 """
@@ -20,11 +21,16 @@ from typing import Any
 import numpy as np
 import torch
 
-from polarshape.io.export import write_normal_map_png, write_normals_exr, write_npy, write_scalar_map_png
+from polarshape.io.export import (
+    write_normal_map_png, write_normals_exr, write_npy, write_rgb_png, write_scalar_map_png,
+)
 from polarshape.io.atomic import atomic_write_text
 from polarshape.io.images import write_image
 
-__all__ = ["RESULT_FORMAT", "is_result_folder", "output_refusal", "plain_json", "write_maps", "write_params"]
+__all__ = [
+    "MATERIAL_COLOURS", "RESULT_FORMAT", "is_result_folder", "output_refusal", "plain_json", "write_maps",
+    "write_material_maps", "write_params",
+]
 
 #: Format tag of params.json.
 RESULT_FORMAT = "polarshape-result/1"
@@ -63,6 +69,24 @@ def write_maps(
     else:
         skipped.append("albedo.png: the model estimated no albedo map")
     return skipped
+
+
+#: RGB of material 0, 1, 2, … in materials.png (repeated beyond; black outside the mask).
+MATERIAL_COLOURS: tuple[tuple[int, int, int], ...] = (
+    (31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40), (148, 103, 189), (140, 86, 75),
+)
+
+
+def write_material_maps(folder: Path, *, materials: np.ndarray, mixed: np.ndarray | None) -> None:
+    """``materials.npy`` (H, W) int16 material index (−1 outside the mask), ``materials.png`` (8-bit
+    RGB, material m in :data:`MATERIAL_COLOURS` [m], black outside the mask) and ``mixed.png`` (255 on
+    the pixels of a material edge, left out of the material fits)."""
+    write_npy(materials.astype(np.int16), folder / "materials.npy")
+    palette = np.asarray(MATERIAL_COLOURS, dtype=np.uint8)  # (C, 3)
+    rgb = np.where((materials >= 0)[..., None], palette[np.clip(materials, 0, None) % len(palette)], 0)
+    write_rgb_png(rgb.astype(np.uint8), folder / "materials.png")
+    if mixed is not None:
+        write_image(folder / "mixed.png", np.where(mixed, 255, 0).astype(np.uint8))
 
 
 def write_params(folder: Path, params: dict[str, Any]) -> dict[str, Any]:

@@ -17,7 +17,10 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validat
 from polarshape.io.material import MaterialError, load_material
 from polarshape.io.yamlfile import resolve_config_path
 
-__all__ = ["InitialNormalsOptions", "MATERIAL_USES", "RecoveryOptions", "VALIDATION_MODELS", "ValidationOptions"]
+__all__ = ["InitialNormalsOptions", "MATERIAL_USES", "MAX_MATERIALS", "RecoveryOptions", "VALIDATION_MODELS", "ValidationOptions"]
+
+#: Most materials ``recovery.materials`` may ask for (and ``auto`` looks for).
+MAX_MATERIALS = 4
 
 #: What ``recovery.material_use`` may say: ``fixed`` (the material's μ, α, β, κ are not re-fitted)
 #: or ``initial`` (they start the global fit).
@@ -68,6 +71,11 @@ class RecoveryOptions(_Options):
         0.0, ge=0.0, le=100.0, description="weight of a normal-smoothness prior after the per-pixel fit (0: per-pixel "
         "maximum likelihood; 0.5: a neighbour weighs half a typical pixel's own data; smooths across creases)"
     )
+    materials: Literal["auto"] | int = Field(
+        "auto", description="how many materials the object is made of: auto = as many as the data need (a split is "
+        "kept when its penalised likelihood pays; 1 when one material explains them), or a number (1: one material "
+        "for the whole mask)"
+    )
     material: str | None = Field(
         None, description="a known FMBRDF material: a material.json (polarshape material), relative to the config "
         "file's folder; null: fit the material from this capture"
@@ -98,12 +106,22 @@ class RecoveryOptions(_Options):
             raise ValueError(f"{path}: {err}") from None
         return str(path)
 
+    @field_validator("materials")
+    @classmethod
+    def _materials_count(cls, value: str | int) -> str | int:
+        if isinstance(value, int) and not 1 <= value <= MAX_MATERIALS:
+            raise ValueError(f"must be auto or a number of materials from 1 to {MAX_MATERIALS}, got {value}")
+        return value
+
     @model_validator(mode="after")
     def _material_needs_fmbrdf(self) -> RecoveryOptions:
         if self.material is not None and self.model == "lambertian":
             raise ValueError("recovery.material applies to the fmbrdf model and recovery.model is 'lambertian' "
                              "(photometric stereo has no material to fix); remove recovery.material or set "
                              "recovery.model to fmbrdf or auto")
+        if self.material is not None and isinstance(self.materials, int) and self.materials > 1:
+            raise ValueError(f"recovery.material is one known material and recovery.materials asks for "
+                             f"{self.materials}: remove recovery.material, or set recovery.materials to 1 or auto")
         return self
 
 

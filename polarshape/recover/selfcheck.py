@@ -93,7 +93,7 @@ logger = logging.getLogger(__name__)
 
 __all__ = [
     "CHECK_WARNINGS", "CLIPPED_CORE_FRACTION", "FILLED_FRACTION_MAX", "LOBE_CORE_MIN_DEG", "LOBE_CORE_MIN_LIGHTS", "FROZEN_FRACTION_MAX", "RESIDUAL_RATIO_MAX", "RecoveryResult",
-    "SelfChecks", "clipped_lobe", "convention_scores", "frame_order", "residual_to_noise", "run_self_checks",
+    "SelfChecks", "clipped_lobe", "convention_scores", "frame_order", "parameters_at_bounds", "residual_to_noise", "run_self_checks",
 ]
 
 #: residual_to_noise above this: FitResidualWarning (clean ≤ 1.12 measured, failures ≥ 3.7; module docstring).
@@ -391,7 +391,10 @@ def _check_frame_order(checks: SelfChecks, capture: Capture, inputs: RecoveryInp
 # --- parameters, filled and frozen pixels, model evidence ------------------------------------------
 
 
-def _at_bounds(params: Mapping[str, float]) -> list[str]:
+def parameters_at_bounds(params: Mapping[str, float]) -> list[str]:
+    """The material parameters of ``params`` (names as :class:`~polarshape.brdf.FMBRDFParams`) at
+    the limits of the fit (:data:`polarshape.recover.reflectometry.BOUNDS`; κ = 0 is not one), each
+    as "name value (bound b)"; k_s 0 as "k_s 0 (bound 0: no specular lobe)"."""
     out = []
     for name, (lo, hi) in BOUNDS.items():
         value = params.get(name)
@@ -414,7 +417,11 @@ def _check_bounds(checks: SelfChecks, result: RecoveryResult, fitted_material: b
     if result.model != "fmbrdf" or not fitted_material:
         checks.measured["bounds"] = []
         return
-    hits = _at_bounds(result.params)
+    several = getattr(result, "material_params", None) or []
+    if len(several) > 1:  # an object of several materials: every material's bounds
+        hits = [f"material {m}: {hit}" for m, p in enumerate(several) for hit in parameters_at_bounds(p)]
+    else:
+        hits = parameters_at_bounds(result.params)
     checks.measured["bounds"] = hits
     if hits:
         checks._warn(ParameterBoundWarning, (

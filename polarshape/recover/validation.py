@@ -82,6 +82,7 @@ class RunResult(Protocol):
     normals: Tensor  # (H, W, 3), NaN outside the mask
     params: dict[str, float]  # the material (FMBRDF: ior, alpha, beta, kappa, k_s, k_b)
     model: str  # "fmbrdf" or "lambertian"
+    # optional (a run of several materials): ``materials`` (H, W) int64, ``material_params`` list[dict]
 
 
 #: Levenberg–Marquardt iterations of the warm material re-fit (from the run's material).
@@ -408,6 +409,36 @@ def _predict_fmbrdf(normals: Tensor, k_b: Tensor, params: FMBRDFParams, test: Ob
     return params.k_s * surf + k_b[:, None, None] * body  # (P, 1, 3)
 
 
+def _run_materials(result: RunResult, crop: RecoveryInputs, stride: int, full: RecoveryInputs
+                   ) -> tuple[Tensor, list[FMBRDFParams]] | None:
+    """A run of several materials (:mod:`polarshape.recover.materials`): the material (P,) of each
+    of the lattice's mask pixels and the materials; None for a run of one."""
+    materials = getattr(result, "materials", None)
+    found = getattr(result, "material_params", None) or []
+    if materials is None or len(found) < 2:
+        return None
+    labels = _crop_like(materials, crop, stride, full)[crop.mask].clamp_min(0)  # (P,)
+    keys = ("ior", "alpha", "beta", "kappa", "k_s", "k_b")
+    return labels, [FMBRDFParams(**{n: float(p[n]) for n in keys if n in p}) for p in found]
+
+
+def _fold_materials(several: tuple[Tensor, list[FMBRDFParams]], start: Tensor, train: Observations,
+                    test: Observations, noise_std: float, polarised: bool, per_pixel: bool) -> tuple[Tensor, Tensor]:
+    """A fold of a run of several materials: each material's pixels' normals (P, 3) and the
+    prediction (P, 1, 3) with their own material."""
+    labels, materials = several
+    normals = start.clone()
+    pred = torch.zeros(start.shape[0], 1, 3, dtype=start.dtype, device=start.device)
+    for m, p in enumerate(materials):
+        sel = labels == m
+        if not bool(sel.any()):
+            continue
+        n_m, kb_m = _fmbrdf_normals(p, start[sel], train.select(sel), noise_std, polarised, per_pixel)
+        normals[sel] = n_m
+        pred[sel] = _predict_fmbrdf(n_m, kb_m, p, test.select(sel))
+    return normals, pred
+
+
 @dataclass(frozen=True)
 class _Baseline:
     """A baseline's global fit: shape parameters and the global specular albedo (0-dim)."""
@@ -541,11 +572,17 @@ def validate_holdout(inputs: RecoveryInputs, result: RunResult, options: Recover
         start = torch.where(torch.isfinite(run_normals), run_normals, ps_all.normals) if warm else ps_all.normals
         start = torch.where(torch.isfinite(start), start, crop.view)  # no normal yet: facing the camera (+V)
         fm_start, fm_params = start[pixels], FMBRDFParams()
+        several = _run_materials(result, crop, stride, inputs) if warm else None
         if warm:  # the run's material without the held-out lights
             keys = ("ior", "alpha", "beta", "kappa", "k_s", "k_b")
             run_params = FMBRDFParams(**{n: float(result.params[n]) for n in keys if n in result.params})
             fm_params = _fmbrdf_global(obs_all, fm_start, run_params, options, noise_std=noise_std,
                                        polarised=polarised, seed=seed)
+        if several is not None:  # several materials: each re-fitted on its own pixels
+            labels_p = several[0]
+            several = (labels_p, [_fmbrdf_global(obs_all.select(labels_p == m), fm_start[labels_p == m], p, options,
+                                                 noise_std=noise_std, polarised=polarised, seed=seed)
+                                  if bool((labels_p == m).any()) else p for m, p in enumerate(several[1])])
         elif baselines or ("fmbrdf" in models and warm_start):  # another model's run: the FMBRDF fitted once
             quick = options.model_copy(update={  # a shorter schedule: the comparison, not the run's answer
                 "max_outer_iterations": min(options.max_outer_iterations, COLD_OUTER_ITERATIONS), "propagate": False,
@@ -577,7 +614,10 @@ def validate_holdout(inputs: RecoveryInputs, result: RunResult, options: Recover
             t0 = time.perf_counter()
             fold_normals = fm_start if "fmbrdf" not in models else None
             if "fmbrdf" in models:
-                if warm_start:
+                if warm_start and several is not None:
+                    fold_normals, preds["fmbrdf"] = _fold_materials(several, fm_start, train, test, noise_std,
+                                                                    polarised, options.per_pixel_albedo)
+                elif warm_start:
                     fold_normals, k_b = _fmbrdf_normals(fm_params, fm_start, train, noise_std, polarised,
                                                         options.per_pixel_albedo)
                     preds["fmbrdf"] = _predict_fmbrdf(fold_normals, k_b, fm_params, test)
@@ -613,7 +653,10 @@ def validate_holdout(inputs: RecoveryInputs, result: RunResult, options: Recover
     folds = (f"then per held-out light the normals and k_b on the other K - 1 ({FOLD_LM_ITERATIONS} LM iterations); "
              "baselines: shape parameters fitted once without the held-out lights, from the fmbrdf normals, ior and "
              "alpha")
-    if warm:
+    if warm and several is not None:
+        how = (f"fmbrdf: each of the run's {len(several[1])} materials re-fitted once on its own pixels without the "
+               f"held-out lights at the run's normals ({WARM_LM_ITERATIONS} LM iterations), {folds}")
+    elif warm:
         how = (f"fmbrdf: the run's material re-fitted once without the held-out lights at the run's normals "
                f"({WARM_LM_ITERATIONS} LM iterations), {folds}")
     elif warm_start:

@@ -9,7 +9,7 @@ for the camera built on top.
 from polarshape.scene.config import SceneConfig, load_scene_config, parse_scene_config
 from polarshape.scene.geometry import BlobShape, MeshShape, PlaneShape, Shape, SphereShape, TorusShape
 from polarshape.scene.materials import BaekMaterial, FMBRDFMaterial, LambertianMaterial, Material
-from polarshape.scene.objects import Scene, SceneObject
+from polarshape.scene.objects import MaterialSplit, Scene, SceneObject
 from polarshape.scene.raycast import GeometryBuffers, cast_shadow_mask, rasterize, superpixel_ground_truth
 from polarshape.scene.textures import AlbedoTexture, make_texture
 
@@ -21,6 +21,7 @@ __all__ = [
     "GeometryBuffers",
     "LambertianMaterial",
     "Material",
+    "MaterialSplit",
     "MeshShape",
     "PlaneShape",
     "Scene",

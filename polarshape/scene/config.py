@@ -8,6 +8,9 @@ paths (meshes, texture images, material files) are relative to the scene file's 
 An object's ``material`` is given inline (``{model: fmbrdf, ior: ..., ...}``) or as a file,
 ``{file: material.json}`` (:mod:`polarshape.io.material`, e.g. measured by ``polarshape material``):
 read and checked when the scene is, rendered as :func:`polarshape.scene.materials.material_from_file` says.
+An object of two materials adds ``split: {normal: [x, y, z], offset: metres, material: {...}}``: the
+points beyond that plane (through the shape's centre, moved by ``offset`` along the normal) take the
+second material (configs/scenes/two_materials_blob.yaml).
 """
 
 from __future__ import annotations
@@ -33,7 +36,7 @@ from polarshape.io.yamlfile import load_yaml
 from polarshape.lights import DirectionalLight, Light
 from polarshape.scene.geometry import BlobShape, CraterShape, MeshShape, PlaneShape, Shape, SphereShape, TorusShape
 from polarshape.scene.materials import BaekMaterial, FMBRDFMaterial, LambertianMaterial, Material, material_from_file
-from polarshape.scene.objects import Scene, SceneObject
+from polarshape.scene.objects import MaterialSplit, Scene, SceneObject
 from polarshape.scene.sensor import SensorModel
 from polarshape.scene.sensor_defects import SensorDefects
 from polarshape.scene.textures import AlbedoTexture, make_texture
@@ -360,16 +363,37 @@ class TextureConfig(_Strict):
         )
 
 
+class SplitConfig(_Strict):
+    """``split:``: a second material on one side of a plane through the object (an object of two
+    parts): points with (p − center)·n̂ > ``offset`` take ``material`` (:class:`~polarshape.scene.objects.MaterialSplit`)."""
+
+    normal: Vec3 = Field(description="the plane's normal, camera frame (any non-zero length)")
+    offset: float = Field(0.0, description="signed distance of the plane from the shape's center along normal, metres")
+    material: MaterialConfig
+
+    @field_validator("normal")
+    @classmethod
+    def _non_zero(cls, v: Vec3) -> Vec3:
+        if math.hypot(*v) <= 0:
+            raise ValueError("split.normal must be a non-zero vector, e.g. [1, 0, 0]")
+        return v
+
+    def to_split(self) -> MaterialSplit:
+        return MaterialSplit(self.normal, self.offset, self.material.to_material())
+
+
 class ObjectConfig(_Strict):
     shape: ShapeConfig
     material: MaterialConfig = FMBRDFConfig()
     texture: TextureConfig | None = None
     in_mask: bool = True
+    split: SplitConfig | None = None
 
     def to_object(self, base_dir: Path | None) -> SceneObject:
         shape = self.shape.to_shape(base_dir)
         texture = self.texture.to_texture(shape.center, base_dir) if self.texture is not None else None
-        return SceneObject(shape, self.material.to_material(), texture, self.in_mask)
+        split = self.split.to_split() if self.split is not None else None
+        return SceneObject(shape, self.material.to_material(), texture, self.in_mask, split)
 
 
 # --- lights -----------------------------------------------------------------------------------

@@ -57,7 +57,7 @@ def albedo_scale_map(scene: Scene, geometry: GeometryBuffers) -> Tensor:
 def colour_albedo_map(scene: Scene, geometry: GeometryBuffers, bayer: str) -> Tensor:
     """(H, W) per-pixel body-albedo multiplier selecting each raw pixel's colour channel.
 
-    Pixel (y, x) behind colour c on an object with material m gets
+    Pixel (y, x) behind colour c on a surface of material m gets
     ``colour_albedo_factors(m)[c]`` (1 for grey materials and off the objects).
 
     Args:
@@ -68,10 +68,10 @@ def colour_albedo_map(scene: Scene, geometry: GeometryBuffers, bayer: str) -> Te
     h, w = geometry.depth.shape
     colour = pixel_colours(bayer, h, w, device=geometry.depth.device)  # (2H, 2W) 0 R, 1 G, 2 B
     scale = torch.ones_like(geometry.depth)
-    for k, obj in enumerate(scene.objects):
-        sel = geometry.object_index == k  # (2H, 2W)
-        factors = geometry.depth.new_tensor(colour_albedo_factors(obj.material))  # (3,)
-        scale = torch.where(sel, factors[colour], scale)
+    materials = scene.material_index(geometry)  # (2H, 2W)
+    for m, material in enumerate(scene.materials):
+        factors = geometry.depth.new_tensor(colour_albedo_factors(material))  # (3,)
+        scale = torch.where(materials == m, factors[colour], scale)
     return scale
 
 
@@ -120,11 +120,12 @@ def shade_directions(scene: Scene, geometry: GeometryBuffers, light_dir: Tensor,
         (3, H, W) (s0, s1, s2) in each pixel's Stokes frame.
     """
     out = torch.zeros(*geometry.depth.shape, 3, dtype=geometry.points.dtype, device=geometry.points.device)  # (H, W, 3)
-    for k, obj in enumerate(scene.objects):
-        sel = lit & (geometry.object_index == k)  # (H, W)
+    materials = scene.material_index(geometry)  # (H, W): objects of two parts shade each with its own
+    for m, material in enumerate(scene.materials):
+        sel = lit & (materials == m)  # (H, W)
         if not sel.any():
             continue
-        s = obj.material.stokes(geometry.normals[sel], light_dir[sel], geometry.view[sel], albedo_scale[sel])  # (M, 3)
+        s = material.stokes(geometry.normals[sel], light_dir[sel], geometry.view[sel], albedo_scale[sel])  # (M, 3)
         out[sel] = s.to(out.dtype) * irradiance[sel][:, None]
     return out.permute(2, 0, 1)
 

@@ -146,3 +146,20 @@ def test_cuda_renders_what_the_cpu_renders():
             gpu.set_light(i)
             assert torch.allclose(cpu.radiance(i), gpu.radiance(i).cpu(), rtol=1e-9, atol=1e-12)
             assert np.abs(cpu.capture().image.astype(int) - gpu.capture().image.astype(int)).max() <= 1
+
+
+def test_a_two_material_object_has_a_material_ground_truth():
+    config = _scene()
+    data = config.model_dump(mode="json")
+    data["objects"][0]["split"] = {"normal": [1.0, 0.0, 0.0], "offset": 0.0,
+                                   "material": {"model": "lambertian", "k_d": 0.2}}
+    with SimulatedCamera(parse_scene_config(data)) as cam:
+        two = cam.ground_truth()
+    with SimulatedCamera(config) as cam:
+        assert "materials" not in cam.ground_truth()  # one material: no map
+    materials, mask = two["materials"], two["mask"]
+    assert materials.dtype == np.int16 and bool((materials[~mask] == -1).all())
+    assert set(np.unique(materials[mask])) <= {0, 1, -2} and (materials == 0).any() and (materials == 1).any()
+    cols = np.nonzero(mask.any(0))[0]
+    assert bool((materials[:, cols[0]][mask[:, cols[0]]] == 0).all())  # left (x < 0): the object's own material
+    assert bool((materials[:, cols[-1]][mask[:, cols[-1]]] == 1).all())  # right: the split's

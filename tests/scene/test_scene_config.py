@@ -153,3 +153,15 @@ def test_a_backdrop_behind_the_object_does_not_excuse_a_light_behind_it():
 def test_the_colour_scene_records_in_a_colour_raw_format():
     config = load_scene_config(SCENES / "colour.yaml")
     assert config.camera.mosaic.bayer == "RGGB" and config.camera.pixel_format.startswith("BayerRG")
+
+
+def test_a_split_gives_an_object_a_second_material():
+    split = {"normal": [1, 0, 0], "offset": 0.0, "material": {"model": "fmbrdf", "alpha": 0.08, "ior": 1.6}}
+    config = parse_scene_config(_with(objects=[{**BASE["objects"][0], "material": {"model": "fmbrdf", "alpha": 0.45},
+                                                "split": split}]))
+    obj = config.build_scene().objects[0]
+    assert [m.alpha for m in obj.materials] == [0.45, 0.08]
+    with pytest.raises(ValueError, match="split.normal"):
+        parse_scene_config(_with(objects=[{**BASE["objects"][0], "split": {**split, "normal": [0, 0, 0]}}]))
+    two = load_scene_config(SCENES / "two_materials_blob.yaml")
+    assert two.objects[0].split is not None and two.objects[0].split.material.alpha == 0.08
