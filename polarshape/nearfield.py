@@ -3,28 +3,36 @@ and the object's absolute distance from the shading.
 
 A lab rig's LEDs sit a few object sizes away, so the light direction L and the 1/r² fall-off E change
 across the object (:meth:`polarshape.lights.Lights.illuminate`): they depend on where each surface point
-is, which is what recovery is after. :func:`refine_near_field` alternates
+is, which is what recovery is after. :func:`refine_near_field` starts from the lights placed on the plane
+at ``integration.reference_depth_m`` (preprocessing), then
 
-1. normals from the current per-pixel L and E (robust Lambertian PS while the geometry settles —
-   :func:`polarshape.normals.initial_normals`, milliseconds —, then the run's full model);
-2. depth: the normals integrated with the run's camera (orthographic or perspective), whose absolute
-   placement (an offset orthographic, a scale in perspective: normals fix the shape, not where it is)
-   comes from the shading (:func:`estimate_depth_placement`);
-3. L and E recomputed at every pixel's 3-D point;
+0. finds the distance of a fronto-parallel plane from the shading (normals from far-off L would
+   integrate to a wild shape) and moves L, E there;
+1. **photometric-stereo rounds** (cheap, milliseconds per fit — :func:`polarshape.normals.initial_normals`):
+   normals from the current L and E → depth (the normals integrated with the run's camera,
+   orthographic or perspective) → its absolute placement from the shading (an offset orthographic, a
+   scale in perspective: normals fix the shape, not where it is; :func:`estimate_depth_placement`) →
+   L and E at every pixel's 3-D point; until the mean normal change is below ``tolerance_deg`` and the
+   RMS depth change below ``depth_tolerance`` of the distance (or ``max_iterations``);
+2. **model rounds** (``full_model_rounds``): the run's model (FMBRDF) fitted at the settled lights; then,
+   each further round, its normals integrated, the placement searched again with the model's
+   non-Lambertian part divided out of the shading (:class:`ModelShading`: gloss and the body term's
+   Fresnel factors otherwise bias a Lambertian search — the glossy sphere 5 % too near), L and E moved,
+   and the model refitted.
 
-until the normals and the depth stop changing (``tolerance_deg``, ``depth_tolerance``), then fits the
-run's model once more and integrates the final depth. Each iteration is recorded
-(:class:`NearFieldIteration`; params.json ``nearfield``).
+The final normals are integrated once more with the last placed depth as the gauge: the depth and mesh
+the run writes are the near-field ones. Each round is recorded (:class:`NearFieldIteration`;
+params.json ``nearfield`` and the report).
 
 **Why the depth is observable.** Under point lights, moving the surface changes each pixel's L_k and the
 relative irradiance E_k of the K lights in a way no normal and albedo can absorb: for each candidate
 placement the K ≥ 4 observations of a pixel over-determine its 3 Lambertian unknowns (b = ρN), and the
-least-squares residual over the observations robust PS used (shadows and highlights left out) is
+least-squares residual over the usable observations (robust PS's: shadows and highlights left out) is
 smallest where L and E are right. The placement is found by a log-spaced scan of the median object
 distance followed by a bounded Brent refinement (:func:`scipy.optimize.minimize_scalar`); the starting
-guess (``integration.reference_depth_m``) only centres the scan. With fewer than 4 point lights every
-placement fits exactly: the depth is not estimated (:class:`~polarshape.errors.NearFieldDepthWarning`)
-and stays at the reference depth.
+guess (``integration.reference_depth_m``) only centres the first scan (× / ÷ ``search_factor``). With
+fewer than 4 point lights every placement fits exactly: the depth is not estimated
+(:class:`~polarshape.errors.NearFieldDepthWarning`) and stays at the reference depth.
 
 **Bad rigs.** A point light inside the bounding box of the recovered surface points is refused
 (:class:`~polarshape.errors.CaptureError`); one behind the camera plane (z < 0) is suspicious
@@ -50,20 +58,22 @@ from pydantic import BaseModel, ConfigDict, Field
 from torch import Tensor
 
 from polarshape.brdf.baselines import lambertian_stokes
+from polarshape.brdf.fmbrdf import FMBRDFTables, build_tables
 from polarshape.cameras import Camera
 from polarshape.checks import to_numpy
 from polarshape.errors import CaptureError, LightPlacementWarning, NearFieldDepthWarning
 from polarshape.lights import Lights, PointLight
 from polarshape.metrics import angular_error_deg
 from polarshape.normals import NormalsResult, initial_normals
-from polarshape.recover.observations import RecoveryInputs
+from polarshape.recover.observations import Observations, RecoveryInputs
+from polarshape.recover.reflectometry import render_parts
 from polarshape.recover.options import InitialNormalsOptions
 from polarshape.recover.photometric import lambertian_ps
 
 logger = logging.getLogger(__name__)
 
 __all__ = [
-    "MIN_LIGHTS_FOR_DEPTH", "NearFieldIteration", "NearFieldOptions", "NearFieldResult", "check_near_field_lights",
+    "MIN_LIGHTS_FOR_DEPTH", "ModelShading", "NearFieldIteration", "NearFieldOptions", "NearFieldResult", "check_near_field_lights",
     "estimate_depth_placement", "near_field_active", "place_depth", "pixel_lights", "refine_near_field",
 ]
 
@@ -275,27 +285,53 @@ def _quiet(log: logging.Logger) -> Iterator[None]:
         log.setLevel(level)
 
 
-def lambertian_shading(inputs: RecoveryInputs, result: NormalsResult, *, min_cos: float = 0.1,
-                       min_rel: float = 0.02) -> tuple[Tensor, Tensor]:
-    """The observed s0 with the run's model's non-Lambertian part divided out, and where that holds.
+@dataclass(frozen=True)
+class ModelShading:
+    """The run's fitted FMBRDF, to divide its non-Lambertian part out of the shading during the depth search.
 
-    s0 · E (N·L)₊ / ŝ0, with ŝ0 the model's rendered s0 and N its normals at the L, E it was fitted
-    with: what a Lambertian surface of the same geometry would have shown. Where the model fits, the
-    depth search's Lambertian objective then sees neither gloss nor the body term's Fresnel factors
-    (which otherwise pull the estimated distance: a glossy FMBRDF sphere 5 % too near).
+    For a candidate placement with per-pixel L and E, the model's surface term S and body term B (k_s = k_b = 1,
+    :func:`polarshape.recover.reflectometry.render_parts`) at the fitted normals N give the shading a
+    Lambertian surface would have shown: (s0 − k_s S) · E (N·L)₊ / B. The normals enter only through the
+    specular lobe and the body term's Fresnel factors (slowly varying), not through the Lambertian cosine,
+    so the K lights' consistency still measures the placement; without it, gloss and the body's Fresnel
+    factors pull the estimate (a glossy FMBRDF sphere: 5 % too near).
 
-    Returns:
-        intensity (K, H, W) and usable (K, H, W) bool: valid observations with N·L > ``min_cos`` and
-        ŝ0 above ``min_rel`` of the pixel's brightest rendered value.
+    Attributes:
+        tables: the fitted material's tables (:func:`polarshape.brdf.fmbrdf.build_tables`).
+        k_s: the fitted surface albedo.
+        normals: (H, W, 3) the fitted normals (NaN outside the mask).
     """
-    normals = torch.nan_to_num(result.normals.to(inputs.stokes), nan=0.0)  # (H, W, 3)
-    cos = (inputs.lights * normals.unsqueeze(0)).sum(-1)  # (K, H, W)
-    rendered = result.rendered[:, 0].to(inputs.stokes)  # (K, H, W)
-    facing = (normals * inputs.view).sum(-1) > min_cos  # (H, W): not at the silhouette either
-    usable = inputs.valid & facing & (cos > min_cos) & (rendered > min_rel * rendered.amax(0, keepdim=True).clamp_min(1e-12))
-    safe = torch.where(usable, rendered, torch.ones_like(rendered))
-    intensity = torch.where(usable, inputs.stokes[:, 0] * inputs.irradiance * cos / safe, torch.zeros_like(rendered))
-    return intensity, usable
+
+    tables: FMBRDFTables
+    k_s: float
+    normals: Tensor
+
+    @classmethod
+    def of(cls, result: NormalsResult) -> ModelShading | None:
+        """The shading model of an FMBRDF ``result`` (None for a Lambertian one: nothing to divide out)."""
+        if result.model != "fmbrdf":
+            return None
+        p = result.params
+        tables = build_tables(ior=p["ior"], alpha=p["alpha"], beta=p["beta"], kappa=p["kappa"],
+                              device=result.normals.device)
+        return cls(tables, float(p["k_s"]), result.normals)
+
+    def lambertian(self, s0: Tensor, lights: Tensor, irradiance: Tensor, view: Tensor, pixels: Tensor,
+                   min_cos: float = 0.1) -> tuple[Tensor, Tensor]:
+        """(K, P) Lambertian-equivalent shading of ``s0`` (K, P) under ``lights`` (K, P, 3), ``irradiance``
+        (K, P) at the ``pixels`` (H, W) bool (``view`` (P, 3)), and where it is defined (N·L and N·V above
+        ``min_cos``, a body term above 1 % of the pixel's brightest)."""
+        normals = torch.nan_to_num(self.normals[pixels].to(s0), nan=0.0)  # (P, 3)
+        obs = Observations(torch.zeros(*lights.shape[1:2], lights.shape[0], 3, dtype=s0.dtype, device=s0.device),
+                           torch.ones_like(s0.T), lights.transpose(0, 1), irradiance.T, view)
+        tables = self.tables
+        surf, body = render_parts(tables, normals, obs)  # (P, K, 3) each, irradiance included
+        surf, body = surf[..., 0].T.to(s0), body[..., 0].T.to(s0)  # (K, P)
+        cos = (lights * normals.unsqueeze(0)).sum(-1)  # (K, P)
+        facing = (normals * view).sum(-1) > min_cos  # (P,)
+        ok = facing & (cos > min_cos) & (body > 0.01 * body.amax(0, keepdim=True).clamp_min(1e-30))
+        safe = torch.where(ok, body, torch.ones_like(body))
+        return torch.where(ok, (s0 - self.k_s * surf) * irradiance * cos / safe, torch.zeros_like(s0)), ok
 
 
 # --- the depth from the shading ----------------------------------------------------------------
@@ -316,7 +352,7 @@ def _search_pixels(mask: np.ndarray, limit: int = _SEARCH_PIXELS) -> np.ndarray:
 def estimate_depth_placement(
     inputs: RecoveryInputs, used: Tensor, shape: np.ndarray, camera: Camera, lights: Lights, *,
     reference_depth: float, search_factor: float = 8.0, scan_points: int = _SCAN_POINTS,
-    intensity: Tensor | None = None,
+    model: ModelShading | None = None,
 ) -> tuple[float, float]:
     """The median depth that makes the shading of ``shape`` most consistent with the point lights.
 
@@ -335,15 +371,15 @@ def estimate_depth_placement(
         lights: the capture's lights.
         reference_depth: the starting guess, metres (centres the scan).
         search_factor: the scan's span. scan_points: its candidates.
-        intensity: (K, H, W) the shading to explain (default s0; :func:`lambertian_shading` removes what
-            the run's model says is not Lambertian).
+        model: the run's fitted FMBRDF: its non-Lambertian part is divided out of s0 at every candidate
+            (:class:`ModelShading`); None: s0 as it is (robust PS's ``used`` observations hold no gloss).
 
     Returns:
         (median depth, relative residual there).
     """
     pixels = _search_pixels(np.isfinite(shape) & to_numpy(inputs.mask).astype(bool))
     pix_t = torch.from_numpy(pixels).to(inputs.stokes.device)
-    s0 = (inputs.stokes[:, 0] if intensity is None else intensity)[:, pix_t].to(torch.float64)  # (K, P)
+    s0 = inputs.stokes[:, 0][:, pix_t].to(torch.float64)  # (K, P)
     obs = used[:, pix_t]  # (K, P)
     view = inputs.view[pix_t].to(torch.float64)  # (P, 3)
     weight = obs.to(torch.float64)
@@ -357,14 +393,22 @@ def estimate_depth_placement(
             return rays * (rel * (d / med))[:, None]
         return np.concatenate([rays[:, :2], (rel + (d - med))[:, None]], axis=1)
 
+    if model is not None:  # the observations the model's correction holds for, at the starting placement
+        l_med, e_med = lights.illuminate(torch.from_numpy(points_at(med)).to(s0.device))
+        shading, ok = model.lambertian(s0, l_med, e_med, view, pix_t)
+        obs = obs & ok
+        weight = obs.to(torch.float64)
+        total = float((weight * shading**2).sum().clamp_min(torch.finfo(torch.float64).tiny))
+
     def objective(log_d: float) -> float:
         pts = points_at(math.exp(log_d))
         if _light_inside(lights, pts):
             return math.inf
         l_pix, e_pix = lights.illuminate(torch.from_numpy(pts).to(s0.device))  # (K, P, 3), (K, P)
-        normals, albedo = lambertian_ps(s0, l_pix, e_pix, obs, view_dirs=view, allow_degenerate=True)
+        intensity = s0 if model is None else model.lambertian(s0, l_pix, e_pix, view, pix_t)[0]
+        normals, albedo = lambertian_ps(intensity, l_pix, e_pix, obs, view_dirs=view, allow_degenerate=True)
         pred = lambertian_stokes(normals.unsqueeze(0), l_pix, view.unsqueeze(0), k_d=math.pi * albedo)[..., 0] * e_pix
-        return float((weight * (s0 - pred) ** 2).sum()) / total
+        return float((weight * (intensity - pred) ** 2).sum()) / total
 
     grid = np.linspace(math.log(reference_depth / search_factor), math.log(reference_depth * search_factor), scan_points)
     with warnings.catch_warnings(), _quiet(logging.getLogger("polarshape.recover.photometric")):
@@ -386,7 +430,7 @@ def estimate_depth_placement(
 
 def _relight(inputs: RecoveryInputs, used: Tensor, normals: np.ndarray, mask: np.ndarray, camera: Camera,
              lights: Lights, integrate: Callable[[np.ndarray, np.ndarray, np.ndarray | None], np.ndarray],
-             depth_m: float, estimate: bool, intensity: Tensor | None) -> tuple[np.ndarray, float, float, RecoveryInputs]:
+             depth_m: float, estimate: bool, model: ModelShading | None) -> tuple[np.ndarray, float, float, RecoveryInputs]:
     """One geometry step: integrate ``normals`` (H, W, 3), place the shape (searched when ``estimate``,
     near the current median depth ``depth_m``), check the rig against it, and move L and E to its points.
     Returns (depth (H, W), median depth, search residual, relit inputs)."""
@@ -394,7 +438,7 @@ def _relight(inputs: RecoveryInputs, used: Tensor, normals: np.ndarray, mask: np
     residual = math.nan
     if estimate:
         found, residual = estimate_depth_placement(inputs, used, shape, camera, lights, reference_depth=depth_m,
-                                                   search_factor=1.25, scan_points=12, intensity=intensity)
+                                                   search_factor=1.25, scan_points=12, model=model)
         if math.isfinite(found):
             depth_m = found
     depth = place_depth(shape, depth_m, camera.projection)
@@ -515,9 +559,8 @@ def refine_near_field(
         t0 = time.perf_counter()
         depth, residual = prev_depth, math.nan
         if r:
-            intensity, model_used = lambertian_shading(inputs, result)
-            depth, depth_m, residual, inputs = _relight(inputs, model_used, current_normals, mask, camera, lights,
-                                                        integrate, depth_m, estimate, intensity)
+            depth, depth_m, residual, inputs = _relight(inputs, inputs.valid, current_normals, mask, camera, lights,
+                                                        integrate, depth_m, estimate, ModelShading.of(result))
         result = recover(inputs)
         new_normals = to_numpy(result.normals)
         iterations.append(_record(it, "model", depth, prev_depth if r else None, new_normals, current_normals, mask,
