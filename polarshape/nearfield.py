@@ -73,8 +73,9 @@ from polarshape.recover.photometric import lambertian_ps
 logger = logging.getLogger(__name__)
 
 __all__ = [
-    "MIN_LIGHTS_FOR_DEPTH", "ModelShading", "NearFieldIteration", "NearFieldOptions", "NearFieldResult", "check_near_field_lights",
-    "estimate_depth_placement", "near_field_active", "place_depth", "pixel_lights", "refine_near_field",
+    "MIN_LIGHTS_FOR_DEPTH", "ModelShading", "NearFieldIteration", "NearFieldOptions", "NearFieldResult",
+    "check_near_field_lights", "corrected_normals", "estimate_depth_placement", "near_field_active", "place_depth",
+    "pixel_lights", "refine_near_field",
 ]
 
 #: Point lights needed to estimate the absolute depth: 3 fit any placement exactly (3 unknowns per pixel).
@@ -334,6 +335,26 @@ class ModelShading:
         return torch.where(ok, (s0 - self.k_s * surf) * irradiance * cos / safe, torch.zeros_like(s0)), ok
 
 
+def corrected_normals(inputs: RecoveryInputs, model: ModelShading) -> np.ndarray:
+    """(H, W, 3) normals of Lambertian PS on the shading with ``model``'s non-Lambertian part divided out
+    (:meth:`ModelShading.lambertian` at the inputs' L and E): the model's normals with its material held
+    fixed, in milliseconds; mask pixels with fewer than 3 usable observations keep the model's normal."""
+    pixels = inputs.mask
+    s0 = inputs.stokes[:, 0][:, pixels].to(torch.float64)  # (K, P)
+    lights = inputs.lights[:, pixels].to(torch.float64)  # (K, P, 3)
+    irradiance = inputs.irradiance[:, pixels].to(torch.float64)  # (K, P)
+    view = inputs.view[pixels].to(torch.float64)  # (P, 3)
+    shading, ok = model.lambertian(s0, lights, irradiance, view, pixels)
+    ok = ok & inputs.valid[:, pixels]
+    with _quiet(logging.getLogger("polarshape.recover.photometric")):
+        normals, _ = lambertian_ps(shading, lights, irradiance, ok, view_dirs=view, allow_degenerate=True)
+    before = model.normals[pixels].to(normals)
+    normals = torch.where((ok.sum(0) >= 3)[:, None], normals, before)
+    out = torch.full((*inputs.shape, 3), math.nan, dtype=torch.float64, device=normals.device)
+    out[pixels] = normals
+    return to_numpy(out)
+
+
 # --- the depth from the shading ----------------------------------------------------------------
 
 
@@ -554,18 +575,30 @@ def refine_near_field(
             not estimate or last.depth_change < options.depth_tolerance)
         if converged:
             break
-    for r in range(max(options.full_model_rounds, 1)):  # the run's model at the settled lights, then relit by it
+    for r in range(options.full_model_rounds):  # the run's model at the settled lights, then relit by it
+        if r:
+            model = ModelShading.of(result)
+            for _ in range(options.max_iterations if model is not None else 0):  # cheap: the material held fixed
+                it += 1
+                t0 = time.perf_counter()
+                depth, depth_m, residual, inputs = _relight(inputs, inputs.valid, current_normals, mask, camera,
+                                                            lights, integrate, depth_m, estimate, model)
+                new_normals = corrected_normals(inputs, model)
+                model = dataclasses.replace(model, normals=torch.from_numpy(new_normals).to(model.normals))
+                iterations.append(_record(it, "model-ps", depth, prev_depth, new_normals, current_normals, mask,
+                                          depth_m, reference_depth, camera, residual, t0))
+                prev_depth, current_normals = depth, new_normals
+                last = iterations[-1]
+                if last.normal_change_deg < options.tolerance_deg and (
+                        not estimate or last.depth_change < options.depth_tolerance):
+                    break
         it += 1
         t0 = time.perf_counter()
-        depth, residual = prev_depth, math.nan
-        if r:
-            depth, depth_m, residual, inputs = _relight(inputs, inputs.valid, current_normals, mask, camera, lights,
-                                                        integrate, depth_m, estimate, ModelShading.of(result))
         result = recover(inputs)
         new_normals = to_numpy(result.normals)
-        iterations.append(_record(it, "model", depth, prev_depth if r else None, new_normals, current_normals, mask,
-                                  depth_m, reference_depth, camera, residual, t0))
-        prev_depth, current_normals = depth, new_normals
+        iterations.append(_record(it, "model", None, None, new_normals, current_normals, mask, depth_m,
+                                  reference_depth, camera, math.nan, t0))
+        current_normals = new_normals
     final = integrate(current_normals, mask & np.all(np.isfinite(current_normals), -1), prev_depth)
     if not converged:
         skipped.append(f"nearfield: not converged after {len(iterations)} rounds (nearfield.max_iterations)")
