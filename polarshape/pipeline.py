@@ -10,6 +10,9 @@ params.json records both):
 3. ``recovery`` — :func:`polarshape.normals.recover_normals`: initial normals (robust Lambertian
    PS), model choice, the FMBRDF joint fit or the Lambertian answer (with ``recovery.material``:
    a known material, fixed or as the start; params.json's ``material`` records which);
+   ``nearfield`` — :func:`near_field`: under point lights, per-pixel L and E moved to the recovered
+   surface and the object's distance estimated from the shading, the model refitted
+   (:mod:`polarshape.nearfield`; params.json's ``nearfield``);
    ``validation`` — :func:`validate`: fit without a few lights, predict them, compare the models
    (params.json's ``validation``; :mod:`polarshape.recover.validation`);
    ``checks`` — :func:`polarshape.recover.selfcheck.run_self_checks`: fit residual against the noise,
@@ -246,7 +249,8 @@ def preprocess(capture: Capture, config: RunConfig, log: _StageLog, *, device: s
                ) -> tuple[RecoveryInputs, Camera]:
     """The recovery's inputs and the super-pixel camera (block centres) the surface is built with.
 
-    Point lights are placed from the plane z = ``integration.reference_depth_m`` (no depth exists yet).
+    Point lights are placed from the plane z = ``integration.reference_depth_m`` (no depth exists yet; the
+    ``nearfield`` stage then moves them to the recovered surface).
     Frames without a polarisation signal (a demosaiced or plain image saved as a frame) are refused
     unless ``preprocess.polarisation_check`` is false
     (:func:`polarshape.recover.diagnose.check_polarisation_signal`).
