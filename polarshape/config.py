@@ -28,6 +28,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationIn
 
 from polarshape.errors import ConfigError
 from polarshape.io.yamlfile import load_yaml, resolve_config_path
+from polarshape.nearfield import NearFieldOptions
 from polarshape.recover.options import InitialNormalsOptions, RecoveryOptions, ValidationOptions
 
 __all__ = [
@@ -39,6 +40,7 @@ __all__ = [
     "InputConfig",
     "IntegrationConfig",
     "MeshConfig",
+    "NearFieldOptions",
     "PreprocessConfig",
     "RecoveryOptions",
     "ReportConfig",
@@ -236,6 +238,7 @@ class RunConfig(_Strict):
     recovery: RecoveryOptions = RecoveryOptions()
     validation: ValidationOptions = ValidationOptions()
     interreflection: InterreflectionConfig = InterreflectionConfig()
+    nearfield: NearFieldOptions = NearFieldOptions()
     integration: IntegrationConfig = IntegrationConfig()
     mesh: MeshConfig = MeshConfig()
     export: ExportConfig = ExportConfig()

@@ -23,8 +23,10 @@ __all__ = [
     "FrameOrderWarning",
     "FrozenPixelsWarning",
     "ImageError",
+    "LightPlacementWarning",
     "LightRigError",
     "ModelEvidenceWarning",
+    "NearFieldDepthWarning",
     "OutputExistsError",
     "OutputPathError",
     "OutputWriteError",
@@ -112,6 +114,17 @@ class FrameOrderWarning(SuspiciousInputWarning):
     """The frames' s0 fits the declared lights far better in another order: frames and lights are
     paired wrongly (shuffled file names, a rig that fired in another order); the message lists which
     frame looks lit by which light — fix ``lights[*].frame`` in capture.yaml."""
+
+
+class LightPlacementWarning(SuspiciousInputWarning):
+    """A point light sits where a lab rig's LED hardly can: behind the camera plane (z < 0 in the camera
+    frame, z forward); usually the sign convention of z is flipped. The message names the lights."""
+
+
+class NearFieldDepthWarning(PolarshapeWarning):
+    """Near-field recovery could not estimate the object's absolute distance from the shading (fewer than
+    4 point lights: every placement fits exactly; or an orthographic camera without a metric pixel size),
+    so the depth stays at ``integration.reference_depth_m``; the message names the cause and the fix."""
 
 
 class BitDepthWarning(SuspiciousInputWarning):

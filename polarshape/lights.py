@@ -19,7 +19,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-__all__ = ["DirectionalLight", "Light", "Lights", "PointLight", "light_from_dict", "light_to_dict"]
+__all__ = ["DirectionalLight", "Light", "Lights", "PointLight", "light_from_dict", "light_to_dict", "ring_lights"]
 
 
 @dataclass(frozen=True)
@@ -189,3 +189,27 @@ def light_to_dict(light: Light) -> dict[str, object]:
         return {"direction": list(light.direction), "intensity": float(light.intensity)}
     return {"position": list(light.position), "intensity": float(light.intensity)}
 
+
+
+def ring_lights(count: int, radius_m: float, distance_m: float, intensity: float = 1.0, *,
+                center_xy: tuple[float, float] = (0.0, 0.0), phase_deg: float = 0.0) -> tuple[PointLight, ...]:
+    """A ring of LEDs: ``count`` point lights evenly spaced on a circle of ``radius_m`` in the plane
+    z = ``distance_m`` (camera frame, metres; 0 = a ring around the lens), centred on
+    ``center_xy``, the first at azimuth ``phase_deg`` (from +x toward +y, image down).
+
+    Raises:
+        ValueError: count < 1, radius ≤ 0, distance < 0, intensity < 0, or a non-finite value.
+    """
+    values = (radius_m, distance_m, intensity, phase_deg, *center_xy)
+    if not all(math.isfinite(float(v)) for v in values):
+        raise ValueError(f"ring: every value must be finite; got radius_m={radius_m}, distance_m={distance_m}, "
+                         f"intensity={intensity}, phase_deg={phase_deg}, center_xy={list(center_xy)}")
+    if count < 1 or not radius_m > 0 or distance_m < 0:
+        raise ValueError(f"ring: need count >= 1, radius_m > 0 and distance_m >= 0 (metres in front of the camera); "
+                         f"got count={count}, radius_m={radius_m}, distance_m={distance_m}")
+    phase = math.radians(phase_deg)
+    return tuple(
+        PointLight((center_xy[0] + radius_m * math.cos(phase + 2 * math.pi * i / count),
+                    center_xy[1] + radius_m * math.sin(phase + 2 * math.pi * i / count), float(distance_m)), intensity)
+        for i in range(count)
+    )

@@ -13,7 +13,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["PERCENTILES", "angular_error_deg", "angular_error_stats", "depth_rmse_aligned"]
+__all__ = ["PERCENTILES", "angular_error_deg", "angular_error_stats", "depth_rmse_absolute", "depth_rmse_aligned"]
 
 #: Percentiles reported by :func:`angular_error_stats`.
 PERCENTILES = (25, 75, 90, 95)
@@ -102,4 +102,23 @@ def depth_rmse_aligned(depth: np.ndarray, reference: np.ndarray, mask: np.ndarra
         "scale": float(scale),
         "offset": float(offset),
         "reference_range": span,
+    }
+
+
+def depth_rmse_absolute(depth: np.ndarray, reference: np.ndarray, mask: np.ndarray | None = None) -> dict[str, float]:
+    """RMSE of ``depth`` against ``reference`` as they are (no alignment: the absolute placement counts,
+    e.g. a near-field depth estimate), over the pixels where both are finite (and ``mask``);
+    ``relative_to_distance`` divides it by the reference's median depth (the camera distance)."""
+    d = np.asarray(depth, dtype=np.float64)
+    r = np.asarray(reference, dtype=np.float64)
+    ok = np.isfinite(d) & np.isfinite(r)
+    if mask is not None:
+        ok &= np.asarray(mask, dtype=bool)
+    if not ok.any():
+        return {"pixels": 0}
+    rmse = float(np.sqrt(np.mean((d[ok] - r[ok]) ** 2)))
+    distance = float(np.median(r[ok]))
+    return {
+        "pixels": int(ok.sum()), "rmse": rmse, "relative_to_distance": rmse / distance if distance > 0 else math.nan,
+        "median_error": float(np.median(d[ok]) - distance), "reference_median": distance,
     }

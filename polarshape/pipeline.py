@@ -10,6 +10,9 @@ params.json records both):
 3. ``recovery`` — :func:`polarshape.normals.recover_normals`: initial normals (robust Lambertian
    PS), model choice, the FMBRDF joint fit or the Lambertian answer (with ``recovery.material``:
    a known material, fixed or as the start; params.json's ``material`` records which);
+   ``nearfield`` — :func:`near_field`: under point lights, per-pixel L and E moved to the recovered
+   surface and the object's distance estimated from the shading, the model refitted
+   (:mod:`polarshape.nearfield`; params.json's ``nearfield``);
    ``validation`` — :func:`validate`: fit without a few lights, predict them, compare the models
    (params.json's ``validation``; :mod:`polarshape.recover.validation`);
    ``checks`` — :func:`polarshape.recover.selfcheck.run_self_checks`: fit residual against the noise,
@@ -52,7 +55,10 @@ from tqdm import tqdm
 from polarshape import __version__
 from polarshape.cameras import Camera
 from polarshape.config import RunConfig
-from polarshape.errors import CaptureError, ConfigError, InterreflectionWarning, PipelineError, PolarshapeWarning, SelfCheckError
+from polarshape.errors import (
+    CaptureError, ConfigError, InterreflectionWarning, NearFieldDepthWarning, PipelineError, PolarshapeWarning,
+    SelfCheckError,
+)
 from polarshape.io.export import write_npy
 from polarshape.io.material import load_material
 from polarshape.imaging.demosaic import stokes_from_mosaic
@@ -62,8 +68,9 @@ from polarshape.io.atomic import atomic_directory, atomic_write_text
 from polarshape.io.capture import Capture, load_capture, write_capture
 from polarshape.io.polarimetric import polarimetric_calibration_record
 from polarshape.io.results import RESULT_FORMAT, output_refusal, write_maps, write_material_maps, write_params
+from polarshape.metrics import angular_error_deg, angular_error_stats, depth_rmse_absolute, depth_rmse_aligned
+from polarshape.nearfield import NearFieldResult, near_field_active, refine_near_field
 from polarshape.surface.interreflection import estimate_one_bounce
-from polarshape.metrics import angular_error_deg, angular_error_stats, depth_rmse_aligned
 from polarshape.normals import NormalsResult, recover_normals
 from polarshape.recover.diagnose import dark_capture_cause
 from polarshape.recover.observations import RecoveryInputs
@@ -79,10 +86,10 @@ logger = logging.getLogger(__name__)
 
 __all__ = [
     "STAGES", "PipelineError", "PipelineResult", "Surface", "acquire", "albedo_map", "build_meshes", "evaluate",
-    "integrate", "preprocess", "run_pipeline", "validate",
+    "integrate", "interreflection", "near_field", "preprocess", "run_pipeline", "validate",
 ]
 
-STAGES: tuple[str, ...] = ("input", "preprocess", "recovery", "interreflection", "validation", "checks", "integration", "mesh", "export",
+STAGES: tuple[str, ...] = ("input", "preprocess", "recovery", "nearfield", "interreflection", "validation", "checks", "integration", "mesh", "export",
                            "evaluation", "report")
 
 
@@ -109,6 +116,8 @@ class Surface:
     depth: np.ndarray
     camera: Camera
     report: IntegrationReport
+    #: where the absolute depth comes from when not from ``integration.reference_depth_m`` (near-field lights)
+    scale_from: str | None = None
 
     @property
     def mask(self) -> np.ndarray:
@@ -251,7 +260,8 @@ def preprocess(capture: Capture, config: RunConfig, log: _StageLog, *, device: s
                ) -> tuple[RecoveryInputs, Camera]:
     """The recovery's inputs and the super-pixel camera (block centres) the surface is built with.
 
-    Point lights are placed from the plane z = ``integration.reference_depth_m`` (no depth exists yet).
+    Point lights are placed from the plane z = ``integration.reference_depth_m`` (no depth exists yet; the
+    ``nearfield`` stage then moves them to the recovered surface).
     Frames without a polarisation signal (a demosaiced or plain image saved as a frame) are refused
     unless ``preprocess.polarisation_check`` is false
     (:func:`polarshape.recover.diagnose.check_polarisation_signal`).
@@ -275,18 +285,61 @@ def preprocess(capture: Capture, config: RunConfig, log: _StageLog, *, device: s
 # --- integration, meshes -----------------------------------------------------------------------
 
 
-def integrate(result: NormalsResult, camera: Camera, config: RunConfig) -> Surface:
-    """Depth of the recovered normals (the pixels with a finite normal)."""
+def _integrate_map(normals: np.ndarray, mask: np.ndarray, camera: Camera, config: RunConfig,
+                   depth_init: np.ndarray | None = None, report: IntegrationReport | None = None) -> np.ndarray:
+    """(H, W) depth of a normal map (H, W, 3) on ``mask`` with the run's integration options."""
+    options = config.integration
+    return integrate_normals(
+        normals, mask, camera=camera, method=options.method, reference_depth=options.reference_depth_m,
+        depth_init=depth_init, k=options.bilateral_k, max_iter=options.max_iter,
+        min_component_size=config.preprocess.min_component_px, report=report,
+    )
+
+
+def integrate(result: NormalsResult, camera: Camera, config: RunConfig, nearfield: NearFieldResult | None = None
+              ) -> Surface:
+    """Depth of the recovered normals (the pixels with a finite normal); with near-field lights, placed
+    where :func:`near_field` found the surface (its depth is the gauge)."""
     normals = to_numpy(result.normals)
     surface = to_numpy(result.mask) & np.all(np.isfinite(normals), axis=-1)
     report = IntegrationReport()
-    options = config.integration
-    depth = integrate_normals(
-        normals, surface, camera=camera, method=options.method, reference_depth=options.reference_depth_m,
-        k=options.bilateral_k, max_iter=options.max_iter, min_component_size=config.preprocess.min_component_px,
-        report=report,
+    depth = _integrate_map(normals, surface, camera, config, None if nearfield is None else nearfield.depth, report)
+    scale_from = "the point lights' shading (near-field)" if nearfield is not None and nearfield.estimated else None
+    return Surface(depth, camera, report, scale_from)
+
+
+# --- near-field lights -------------------------------------------------------------------------
+
+
+def near_field(capture: Capture, inputs: RecoveryInputs, result: NormalsResult, camera: Camera, config: RunConfig,
+               log: _StageLog) -> tuple[RecoveryInputs, NormalsResult, NearFieldResult | None]:
+    """Point lights: L and E moved to the recovered surface and the absolute depth estimated from the
+    shading (:func:`polarshape.nearfield.refine_near_field`); returns the final inputs and result.
+    Skipped (recorded) under directional lights, with ``nearfield.enabled: false``, and for an
+    orthographic camera without a metric pixel size (:class:`NearFieldDepthWarning`)."""
+    lights = capture.lights()
+    if not near_field_active(config.nearfield, lights):
+        log.skip("nearfield", "no point lights" if not lights.has_point_lights else "nearfield.enabled is false")
+        return inputs, result, None
+    if f"integration: {_NO_METRIC_SCALE}" in log.skipped:
+        warnings.warn(NearFieldDepthWarning(
+            "near-field lights need metric surface points, but this orthographic run has no pixel size: set "
+            "integration.pixel_size_m (metres per super-pixel); lights stay placed from integration.reference_depth_m"
+        ), stacklevel=2)
+        log.skip("nearfield", "orthographic camera without integration.pixel_size_m")
+        return inputs, result, None
+
+    def recover(new_inputs: RecoveryInputs) -> NormalsResult:
+        return recover_normals(new_inputs, config.recovery, config.initial_normals, seed=config.seed, progress=False)
+
+    found = refine_near_field(
+        inputs, result, camera, lights, recover=recover,
+        integrate=lambda n, m, init: _integrate_map(n, m, camera, config, init),
+        reference_depth=config.integration.reference_depth_m, options=config.nearfield, initial=config.initial_normals,
     )
-    return Surface(depth, camera, report)
+    for item in found.skipped:
+        log.skip("nearfield", item)
+    return found.inputs, found.result, found
 
 
 def interreflection(inputs: RecoveryInputs, result: NormalsResult, camera: Camera, capture: Capture, config: RunConfig,
@@ -401,6 +454,8 @@ def _vertex_colours(albedo: np.ndarray | None, surface: Surface, config: RunConf
 def _mesh_units(surface: Surface, log: _StageLog) -> tuple[str, str]:
     """(units, where the scale comes from) of the meshes: ``metres``, or ``superpixels`` when an
     orthographic run had no pixel size (:func:`_pixel_size` recorded that it fell back to 1)."""
+    if surface.scale_from is not None:
+        return "metres", f"{surface.camera.projection} camera; absolute depth from {surface.scale_from}"
     if surface.camera.projection != "orthographic":
         return "metres", "perspective intrinsics; absolute scale from integration.reference_depth_m"
     if f"integration: {_NO_METRIC_SCALE}" in log.skipped:
@@ -527,6 +582,8 @@ def evaluate(capture: Capture, result: NormalsResult, surface: Surface, log: _St
     gt_depth = capture.ground_truth.get("depth")
     if isinstance(gt_depth, np.ndarray) and gt_depth.shape == mask.shape:
         metrics["depth"] = depth_rmse_aligned(surface.depth, gt_depth, surface.mask)
+        if not _metric_depth_unknown(log):
+            metrics["depth_absolute"] = depth_rmse_absolute(surface.depth, gt_depth, surface.mask)
     else:
         log.skip("evaluation", "depth: the capture has no ground_truth/depth.npy at super-pixel size")
     if result.albedo_rgb is not None:
@@ -554,6 +611,11 @@ def _colour_metrics(capture: Capture, result: NormalsResult) -> dict[str, Any] |
     error = [100.0 * (g - t) / t for g, t in zip(got, want)]
     return {"chromaticity": got, "truth_chromaticity": want, "chromaticity_error_pct": error,
             "max_abs_chromaticity_error_pct": max(abs(e) for e in error)}
+
+
+def _metric_depth_unknown(log: _StageLog) -> bool:
+    """Whether the depth is in super-pixel units (orthographic without a pixel size): no absolute error."""
+    return f"integration: {_NO_METRIC_SCALE}" in log.skipped
 
 
 # --- params.json, report -----------------------------------------------------------------------
@@ -607,6 +669,14 @@ def _summary_line(out: Path, result: NormalsResult, metrics: dict[str, Any], tot
     depth = metrics.get("depth", {})
     if "rmse" in depth:
         parts.append(f"depth RMSE {depth['rmse']:.3g} ({100 * depth['relative']:.2f} % of range, scale/offset aligned)")
+    nearfield = params.get("nearfield") or {}
+    if nearfield.get("enabled"):
+        how = "estimated from the shading" if nearfield["depth_estimated"] else "integration.reference_depth_m"
+        absolute = metrics.get("depth_absolute", {})
+        error = (f", {100 * absolute['relative_to_distance']:.2f} % of the distance vs ground truth"
+                 if "rmse" in absolute else "")
+        parts.append(f"near-field: object at {nearfield['median_depth_m']:.4g} m ({how}{error}; "
+                     f"{len(nearfield['iterations'])} rounds)")
     warned_part = _warnings_part(list(warned or []))
     if warned_part:
         parts.append(warned_part)
@@ -837,6 +907,8 @@ def _run_stages(config: RunConfig, work: Path, out: Path, device: str, log: _Sta
                                  progress=config.progress)
         for item in result.skipped:
             log.skip("recovery", item)
+    with log.stage("nearfield"):
+        inputs, result, nearfield = near_field(capture, inputs, result, camera, config, log)
     with log.stage("interreflection"):
         inputs, result, bounce_record, bounce_map = interreflection(inputs, result, camera, capture, config, log)
     with log.stage("validation"):
@@ -845,7 +917,7 @@ def _run_stages(config: RunConfig, work: Path, out: Path, device: str, log: _Sta
         checks = run_self_checks(capture, inputs, result, validation.as_dict() if validation.ran else None,
                                  earlier=list(warned), fitted_material=not _material_fixed(config))
     with log.stage("integration"):
-        surface = integrate(result, camera, config)
+        surface = integrate(result, camera, config, nearfield)
     with log.stage("mesh"):
         mesh_info = build_meshes(work, result, surface, config, log)
     with log.stage("export"):
@@ -868,6 +940,7 @@ def _run_stages(config: RunConfig, work: Path, out: Path, device: str, log: _Sta
     params["validation"] = validation.as_dict()
     params["interreflection"] = bounce_record
     params["checks"] = checks.as_dict()
+    params["nearfield"] = nearfield.as_dict() if nearfield is not None else {"enabled": False}
     params["summary"] = _summary_line(out, result, metrics, time.perf_counter() - t_start, params=params,
                                       has_polarisation=inputs.has_polarisation, warned=warned)
     with log.stage("report"):

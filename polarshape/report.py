@@ -1052,6 +1052,22 @@ def _timing_table(params: dict[str, Any]) -> str:
     return _table("Timings (s)", rows)
 
 
+def _nearfield_table(params: dict[str, Any]) -> str:
+    """The near-field rounds (params.json ``nearfield``): depth placement and changes per round."""
+    record = params.get("nearfield") or {}
+    if not record.get("enabled"):
+        return ""
+    header = ["round", "normals", "median depth, m", "placement", "normal change, deg", "depth change", "residual",
+              "seconds"]
+    keys = ["iteration", "normals", "median_depth_m", "placement", "normal_change_deg", "depth_change", "residual",
+            "seconds"]
+    rows = [tuple(_fmt(it.get(k)) for k in keys) for it in record.get("iterations") or []]
+    how = "estimated from the shading" if record.get("depth_estimated") else "integration.reference_depth_m"
+    note = (f"object at {_fmt(record.get('median_depth_m'))} m ({how}; first guess {_fmt(record.get('reference_depth_m'))} "
+            f"m); placement: {(record.get('placement') or {}).get('kind')}; converged: {record.get('converged')}")
+    return _table("Near-field lights: normals, depth and per-pixel lights", rows, header, note)
+
+
 def _checks_table(params: dict[str, Any]) -> str:
     checks = params.get("checks")
     if not isinstance(checks, dict):
@@ -1094,7 +1110,7 @@ def _page(data: ReportData) -> str:
     if "error_map" in specs:
         sections.append(_img(specs["error_map"], "Angular error against ground truth"))
     sections += [
-        metrics, _checks_table(p), _timing_table(p),
+        metrics, _nearfield_table(p), _checks_table(p), _timing_table(p),
         _table("Skipped", [(s.split(":", 1)[0], s.split(":", 1)[-1].strip()) for s in p.get("skipped") or []]),
         _table("Capture", [(k, _fmt(v)) for k, v in (p.get("capture") or {}).items()]),
         f"<h2>params.json (at report time)</h2><pre>{_esc(json.dumps(p, indent=1, default=str)[:20000])}</pre>",

@@ -22,6 +22,7 @@ STAGES: tuple[tuple[str, ...], ...] = (
     ("recover",),
     ("normals",),
     ("surface",),
+    ("nearfield",),
     ("report",),
     ("config", "pipeline", "measure"),
     ("cli", "batch"),

@@ -53,7 +53,7 @@ def test_shipped_configs_validate() -> None:
         load_run_config(REPO / "configs" / "real_capture_template.yaml")
     message = str(info.value)
     assert "1 problem(s)" in message and "input.path" in message and "my_object" in message
-    for name in ("blob", "two_materials"):  # the scene examples
+    for name in ("blob", "two_materials", "nearfield_sphere", "nearfield_blob"):  # the scene examples
         example = load_run_config(REPO / "configs" / f"{name}.yaml")
         assert example.input.type == "simulated" and Path(example.input.scene).is_file()
         assert example.recovery.model == "fmbrdf" and example.recovery.materials == "auto"

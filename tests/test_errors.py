@@ -47,7 +47,7 @@ def test_all_lists_every_kind() -> None:
 WARNINGS = [errors.PolarshapeWarning, errors.SuspiciousInputWarning, errors.FitResidualWarning, errors.ConventionWarning,
             errors.FrameOrderWarning, errors.BitDepthWarning, errors.ParameterBoundWarning, errors.FilledPixelsWarning,
             errors.FrozenPixelsWarning, errors.ModelEvidenceWarning, errors.ClippedLobeWarning,
-            errors.InterreflectionWarning]
+            errors.InterreflectionWarning, errors.LightPlacementWarning, errors.NearFieldDepthWarning]
 
 
 @pytest.mark.parametrize("kind", WARNINGS)

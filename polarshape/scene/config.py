@@ -33,7 +33,7 @@ from polarshape.imaging.pixels import PIXEL_FORMATS, bayer_of
 from polarshape.io.capture import IntrinsicsSpec, LightSpec, MosaicSpec, Projection
 from polarshape.io.material import MaterialError, load_material
 from polarshape.io.yamlfile import load_yaml
-from polarshape.lights import DirectionalLight, Light
+from polarshape.lights import DirectionalLight, Light, ring_lights
 from polarshape.scene.geometry import BlobShape, CraterShape, MeshShape, PlaneShape, Shape, SphereShape, TorusShape
 from polarshape.scene.materials import BaekMaterial, FMBRDFMaterial, LambertianMaterial, Material, material_from_file
 from polarshape.scene.objects import MaterialSplit, Scene, SceneObject
@@ -424,6 +424,44 @@ class LightConfig(LightSpec):
         return DirectionalLight((math.sin(z) * math.cos(a), math.sin(z) * math.sin(a), -math.cos(z)), self.intensity)
 
 
+class RingLightConfig(_Strict):
+    """``lights: [{ring: {...}}]``: an LED ring (:func:`polarshape.lights.ring_lights`), expanded to
+    ``count`` point-light entries in place (so the capture records plain positions)."""
+
+    count: int = Field(gt=0, le=1000, description="number of LEDs, evenly spaced")
+    radius_m: float = Field(gt=0, description="ring radius, metres")
+    distance_m: float = Field(ge=0, description="z of the ring's plane in front of the camera, metres (0: around the lens)")
+    intensity: float = Field(1.0, gt=0, description="each LED's irradiance at normal incidence at 1 m")
+    center_xy: tuple[float, float] = Field((0.0, 0.0), description="x, y of the ring's centre, metres")
+    phase_deg: float = Field(0.0, description="azimuth of the first LED, from +x toward +y (image down)")
+
+    def entries(self) -> list[dict[str, Any]]:
+        lights = ring_lights(self.count, self.radius_m, self.distance_m, self.intensity, center_xy=self.center_xy,
+                             phase_deg=self.phase_deg)
+        return [{"position": list(light.position), "intensity": light.intensity} for light in lights]
+
+
+def _expand_rings(value: Any) -> Any:
+    """A ``lights`` list with every ``{ring: {...}}`` entry replaced by its point lights (in order)."""
+    if not isinstance(value, list):
+        return value
+    out: list[Any] = []
+    for k, entry in enumerate(value):
+        if not (isinstance(entry, dict) and "ring" in entry):
+            out.append(entry)
+            continue
+        if set(entry) != {"ring"}:
+            raise ValueError(f"lights[{k}]: a ring entry holds only ring: {{count, radius_m, distance_m, ...}}; "
+                             f"remove {sorted(set(entry) - {'ring'})}")
+        try:
+            ring = entry["ring"] if isinstance(entry["ring"], RingLightConfig) else RingLightConfig.model_validate(entry["ring"])
+        except ValidationError as err:
+            problems = "; ".join(f"{'.'.join(str(p) for p in e['loc'])}: {e['msg']}" for e in err.errors())
+            raise ValueError(f"lights[{k}].ring: {problems} (keys: {', '.join(RingLightConfig.model_fields)})") from None
+        out.extend(ring.entries())
+    return out
+
+
 # --- the whole scene --------------------------------------------------------------------------
 
 
@@ -452,6 +490,11 @@ class SceneConfig(_Strict):
     render: RenderConfig = RenderConfig()
     #: folder relative paths are resolved against (set by :func:`load_scene_config`)
     base_dir: Path | None = Field(None, exclude=True)
+
+    @field_validator("lights", mode="before")
+    @classmethod
+    def _rings(cls, value: Any) -> Any:
+        return _expand_rings(value)
 
     @model_validator(mode="after")
     def _point_lights_in_front(self) -> SceneConfig:

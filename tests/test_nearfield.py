@@ -1,0 +1,191 @@
+"""Near-field lights: normals ↔ depth ↔ per-pixel L and E, and the object's distance from the shading."""
+
+from __future__ import annotations
+
+import math
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from polarshape.acquisition.simulated import SimulatedCamera
+from polarshape.errors import CaptureError, LightPlacementWarning, NearFieldDepthWarning
+from polarshape.lights import DirectionalLight, Lights, PointLight, ring_lights
+from polarshape.metrics import angular_error_deg
+from polarshape.nearfield import (
+    NearFieldOptions, check_near_field_lights, near_field_active, place_depth, refine_near_field,
+)
+from polarshape.normals import recover_normals
+from polarshape.recover.options import RecoveryOptions
+from polarshape.recover.preprocess import capture_camera, preprocess_capture
+from polarshape.scene.config import parse_scene_config
+from polarshape.surface.integrate import integrate_normals
+
+DISTANCE = 0.35  # the sphere's centre, metres
+RADIUS = 0.04
+
+
+def _scene(projection: str = "perspective", lights: list[dict] | None = None) -> dict:
+    """A Lambertian sphere 8 cm across at 35 cm under an LED ring 3.5 radii away, 64 × 64 raw pixels."""
+    camera: dict = {"projection": projection, "width": 64, "height": 64, "pixel_format": "PolarizeMono12"}
+    if projection == "perspective":
+        camera["intrinsics"] = {"fx": 225.0, "fy": 225.0, "cx": 31.5, "cy": 31.5}
+    else:
+        camera["pixel_size_m"] = 1.5e-3
+    return {
+        "camera": camera,
+        "sensor": {"read_noise_e": 2.5, "shot_noise": "poisson", "seed": 5},
+        "objects": [{"shape": {"type": "sphere", "center": [0.0, 0.0, DISTANCE], "radius": RADIUS},
+                     "material": {"model": "lambertian", "k_d": 0.5}}],
+        "lights": lights or [{"ring": {"count": 12, "radius_m": 0.10, "distance_m": 0.25, "intensity": 0.015}}],
+    }
+
+
+def _capture(tmp_path: Path, **kwargs):
+    config = parse_scene_config(_scene(**kwargs))
+    with SimulatedCamera(config, seed=5) as camera:
+        return camera.render_capture(tmp_path / "capture", progress=False)
+
+
+def _refine(capture, reference: float, options: NearFieldOptions = NearFieldOptions()):
+    """The plane-placed baseline and the near-field refinement of a capture (Lambertian model)."""
+    pixel = 2 * 1.5e-3 if capture.spec.camera.projection == "orthographic" else None
+    camera = capture_camera(capture, "centre", pixel)
+    h, w = camera.height, camera.width
+    inputs = preprocess_capture(capture, points=camera.unproject(np.full((h, w), reference)), dtype=torch.float64)
+    options_lambertian = RecoveryOptions(model="lambertian")
+    baseline = recover_normals(inputs, options_lambertian)
+
+    def integrate(normals, mask, init):
+        return integrate_normals(normals, mask, camera=camera, reference_depth=reference, depth_init=init)
+
+    found = refine_near_field(inputs, baseline, camera, capture.lights(), recover=lambda i: recover_normals(
+        i, options_lambertian), integrate=integrate, reference_depth=reference, options=options)
+    return baseline, found
+
+
+def _mean_error(result, capture) -> float:
+    mask = result.mask.numpy()
+    return float(np.mean(angular_error_deg(result.normals.numpy(), capture.ground_truth["normals"], mask)[mask]))
+
+
+def test_ring_lights_lie_on_their_circle() -> None:
+    ring = ring_lights(12, 0.1, 0.25, 0.02, center_xy=(0.01, 0.0), phase_deg=90)
+    assert len(ring) == 12 and all(isinstance(light, PointLight) for light in ring)
+    pos = np.array([light.position for light in ring])
+    assert np.allclose(np.hypot(pos[:, 0] - 0.01, pos[:, 1]), 0.1) and np.allclose(pos[:, 2], 0.25)
+    assert np.allclose(pos[0], [0.01, 0.1, 0.25])
+    with pytest.raises(ValueError, match="radius_m > 0"):
+        ring_lights(12, 0.0, 0.25)
+
+
+def test_scene_ring_expands_to_point_lights_and_stays_strict() -> None:
+    config = parse_scene_config(_scene(lights=[{"ring": {"count": 6, "radius_m": 0.1, "distance_m": 0.2}},
+                                               {"position": [0.0, 0.0, 0.1]}]))
+    assert len(config.lights) == 7 and config.lights[6].position == (0.0, 0.0, 0.1)
+    with pytest.raises(ValueError, match=r"lights\[0\]\.ring: radiu"):
+        parse_scene_config(_scene(lights=[{"ring": {"count": 6, "radiu_m": 0.1, "distance_m": 0.2}}]))
+    with pytest.raises(ValueError, match="holds only ring"):
+        parse_scene_config(_scene(lights=[{"ring": {"count": 6, "radius_m": 0.1, "distance_m": 0.2}, "intensity": 1}]))
+
+
+def test_depth_recovered_from_the_shading_with_lights_given_as_positions(tmp_path: Path) -> None:
+    """The lights are only positions and the reference plane is at 1 m: the sphere's distance comes from the
+    shading (measured: 0.03 % of its median depth), and the normals beat the plane-placed baseline."""
+    capture = _capture(tmp_path)
+    baseline, found = _refine(capture, reference=1.0)
+    truth = capture.ground_truth["depth"]
+    mask = found.result.mask.numpy()
+    true_median = float(np.median(truth[mask]))
+    assert found.estimated and found.converged
+    assert abs(found.median_depth_m - true_median) < 0.02 * true_median
+    assert np.sqrt(np.nanmean((found.depth[mask] - truth[mask]) ** 2)) < 0.02 * DISTANCE
+    assert _mean_error(found.result, capture) < 2.0 < 10 * 2.0 < _mean_error(baseline, capture)
+    record = found.as_dict()
+    assert record["placement"]["kind"] == "scale" and record["iterations"][0]["normals"] == "plane"
+    assert record["iterations"][-1]["normals"] == "model"
+
+
+def test_orthographic_camera_with_point_lights_finds_the_offset(tmp_path: Path) -> None:
+    capture = _capture(tmp_path, projection="orthographic")
+    baseline, found = _refine(capture, reference=0.6)
+    truth = capture.ground_truth["depth"]
+    mask = found.result.mask.numpy()
+    assert abs(found.median_depth_m - float(np.median(truth[mask]))) < 0.01 * DISTANCE
+    assert found.as_dict()["placement"]["kind"] == "offset_m"
+    assert _mean_error(found.result, capture) < min(2.0, _mean_error(baseline, capture))
+
+
+def test_fewer_than_four_point_lights_keep_the_reference_depth(tmp_path: Path) -> None:
+    lights = [{"position": [0.1 * math.cos(a), 0.1 * math.sin(a), 0.25], "intensity": 0.015} for a in (0.0, 2.1, 4.2)]
+    capture = _capture(tmp_path, lights=lights)
+    with pytest.warns(NearFieldDepthWarning, match="3 point light"):
+        _, found = _refine(capture, reference=0.34, options=NearFieldOptions(max_iterations=2, full_model_rounds=1))
+    assert not found.estimated and found.median_depth_m == pytest.approx(0.34, rel=0.01)
+
+
+def test_directional_lights_leave_near_field_off() -> None:
+    directional = Lights((DirectionalLight((0.3, 0.0, -1.0)), DirectionalLight((0.0, 0.3, -1.0))))
+    assert not near_field_active(NearFieldOptions(), directional)
+    assert near_field_active(NearFieldOptions(), Lights((PointLight((0.1, 0.0, 0.2)),)))
+    assert not near_field_active(NearFieldOptions(enabled=False), Lights((PointLight((0.1, 0.0, 0.2)),)))
+    with pytest.raises(CaptureError, match="no point light"):
+        near_field_active(NearFieldOptions(enabled=True), directional)
+
+
+def test_bad_rigs_are_refused_or_flagged() -> None:
+    points = np.array([[-0.04, -0.04, 0.31], [0.04, 0.04, 0.35]])
+    with pytest.raises(CaptureError, match=r"lights\[1\].*inside the object's bounding box"):
+        check_near_field_lights(Lights((PointLight((0.1, 0.0, 0.25)), PointLight((0.0, 0.0, 0.33)))), points)
+    with pytest.warns(LightPlacementWarning, match=r"lights\[0\].*behind the camera plane"):
+        check_near_field_lights(Lights((PointLight((0.1, 0.0, -0.05)), PointLight((0.0, 0.1, 0.2)))), points)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        check_near_field_lights(Lights((PointLight((0.1, 0.0, 0.25)), PointLight((0.0, 0.1, 0.0)))), points)
+
+
+def test_place_depth_scales_in_perspective_and_shifts_orthographic() -> None:
+    shape = np.array([[1.0, 2.0], [3.0, np.nan]])
+    assert np.allclose(place_depth(shape, 4.0, "perspective")[0], [2.0, 4.0])
+    assert np.allclose(place_depth(shape, 4.0, "orthographic")[0], [3.0, 4.0])
+
+
+@pytest.mark.parametrize("name", ["nearfield_sphere", "nearfield_blob"])
+def test_shipped_near_field_scenes_are_rings_at_three_to_four_radii(name: str) -> None:
+    from polarshape.scene.config import load_scene_config
+
+    config = load_scene_config(Path(__file__).resolve().parents[1] / "configs" / "scenes" / f"{name}.yaml")
+    shape = config.objects[0].shape
+    centres = np.array([light.position for light in config.lights]) - np.asarray(shape.center)
+    assert len(config.lights) == 12 and config.camera.projection == "perspective"
+    assert np.all((3 * shape.radius <= np.linalg.norm(centres, axis=1)) & (np.linalg.norm(centres, axis=1) <= 4 * shape.radius))
+
+
+@pytest.mark.slow
+def test_pipeline_writes_the_near_field_depth_and_rounds(tmp_path: Path) -> None:
+    """``polarshape run`` on a near-field capture: the depth and mesh written are the near-field ones, and
+    params.json, the summary and the report name the estimated distance and the rounds."""
+    import json
+
+    import yaml
+
+    from polarshape.config import load_run_config
+    from polarshape.pipeline import STAGES, run_pipeline
+
+    (tmp_path / "scene.yaml").write_text(yaml.safe_dump(_scene()))
+    (tmp_path / "run.yaml").write_text(yaml.safe_dump({
+        "input": {"type": "simulated", "scene": "scene.yaml", "seed": 5}, "progress": False,
+        "recovery": {"model": "lambertian"}, "validation": {"holdout": "none"}, "export": {"exr": False},
+        "mesh": {"obj": False, "poisson": False}, "integration": {"reference_depth_m": 0.8},
+    }))
+    result = run_pipeline(load_run_config(tmp_path / "run.yaml"), tmp_path / "out")
+    params = json.loads((result.out_dir / "params.json").read_text())
+    record = params["nearfield"]
+    assert record["enabled"] and record["depth_estimated"] and "nearfield" in STAGES
+    assert params["metrics"]["depth_absolute"]["relative_to_distance"] < 0.02
+    depth = np.load(result.out_dir / "depth.npy")
+    assert np.nanmedian(depth) == pytest.approx(record["median_depth_m"], rel=0.01)
+    assert "near-field: object at" in params["summary"] and "point lights' shading" in params["mesh"]["scale"]
+    assert "Near-field lights" in (result.out_dir / "report.html").read_text()
