@@ -373,7 +373,7 @@ def interreflection(inputs: RecoveryInputs, result: NormalsResult, camera: Camer
     if options.mode == "off":
         log.skip("interreflection", "interreflection.mode: off")
         return inputs, result, record, None
-    if result.model != "fmbrdf":
+    if result.model != "fmbrdf" or not all(k in result.params for k in ("ior", "k_s", "alpha", "beta")):
         log.skip("interreflection", f"needs the FMBRDF material (the run's model is {result.model})")
         return inputs, result, record, None
     observed = inputs.stokes  # (K, 3, H, W)

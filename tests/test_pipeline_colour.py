@@ -24,6 +24,8 @@ def _colour_scene(folder: Path, *, bayer: str | None = "RGGB", n: int = 32) -> P
     scene = yaml.safe_load((REPO / "configs" / "scenes" / "colour.yaml").read_text())
     scene["camera"].update(width=2 * n, height=2 * n, pixel_size_m=1e-4 * 64 / n)
     scene["camera"]["mosaic"]["bayer"] = bayer
+    if bayer is None:  # the same scene on a mono sensor: a PolarizeMono format
+        scene["camera"]["pixel_format"] = "PolarizeMono12"
     path = folder / f"scene_{bayer or 'mono'}.yaml"
     path.write_text(yaml.safe_dump(scene))
     return path

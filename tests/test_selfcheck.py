@@ -207,7 +207,8 @@ def test_strict_run_exits_4_and_keeps_the_result(sphere: Capture, tmp_path: Path
     names = [w["name"] for w in params["checks"]["warnings"]]
     assert {"FitResidualWarning", "ConventionWarning"} <= set(names)
     assert params["checks"]["residual_to_noise"] > RESIDUAL_RATIO_MAX
-    assert "model fmbrdf" in params["summary"] and f"{len(params['warnings'])} warnings: FitResidualWarning" in params["summary"]
+    # (the mirrored surface is also concave-looking: InterreflectionWarning may come first)
+    assert "model fmbrdf" in params["summary"] and f"{len(params['warnings'])} warnings: " in params["summary"]
     assert all(name in params["summary"] for name in names)
     assert "checks" in params["timings_s"] and (out / "normals.npy").exists() or (out / "normal.png").exists()
 

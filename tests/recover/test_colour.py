@@ -36,6 +36,8 @@ def _scene(bayer: str | None, n: int = 32) -> dict:
     d = yaml.safe_load((REPO / "configs" / "scenes" / "colour.yaml").read_text())
     d["camera"].update(width=2 * n, height=2 * n, pixel_size_m=1e-4 * 64 / n)
     d["camera"]["mosaic"]["bayer"] = bayer
+    if bayer is None:  # the same scene on a mono sensor: a PolarizeMono format
+        d["camera"]["pixel_format"] = "PolarizeMono12"
     return d
 
 
