@@ -343,7 +343,8 @@ def near_field(capture: Capture, inputs: RecoveryInputs, result: NormalsResult, 
 
 
 def interreflection(inputs: RecoveryInputs, result: NormalsResult, camera: Camera, capture: Capture, config: RunConfig,
-                    log: _StageLog) -> tuple[RecoveryInputs, NormalsResult, dict[str, Any], Tensor | None]:
+                    log: _StageLog, nearfield: NearFieldResult | None = None
+                    ) -> tuple[RecoveryInputs, NormalsResult, dict[str, Any], Tensor | None]:
     """Light the object sends onto itself (``interreflection:``): taken out and re-fitted, or marked.
 
     The current normals are integrated and one bounce B off that surface is rendered with the current
@@ -361,7 +362,8 @@ def interreflection(inputs: RecoveryInputs, result: NormalsResult, camera: Camer
 
     ``auto`` stops after the first estimate when the bounce exceeds ``min_fraction`` of the light on less
     than ``min_area`` of the object (a convex object sees nothing of itself); ``on`` always corrects
-    (needs ``albedo_scale``).
+    (needs ``albedo_scale``). Under point lights the surface is placed where ``nearfield`` found it
+    (the bounce points must be lit from where the lights really are).
 
     Returns:
         the inputs the final result was fitted to, that result, the record for params.json
@@ -380,7 +382,7 @@ def interreflection(inputs: RecoveryInputs, result: NormalsResult, camera: Camer
     usable = inputs.valid & inputs.mask.unsqueeze(0)  # (K, H, W)
     fraction_map: Tensor | None = None
     for round_index in range(options.iterations if options.albedo_scale is not None else 1):
-        surface = integrate(result, camera, config)
+        surface = integrate(result, camera, config, nearfield)
         bounce = estimate_one_bounce(
             result.normals, result.albedo, surface.depth, camera, inputs.view, capture.lights(), result.params,
             samples=options.samples, max_pixels=options.max_pixels, seed=config.seed,
@@ -910,7 +912,8 @@ def _run_stages(config: RunConfig, work: Path, out: Path, device: str, log: _Sta
     with log.stage("nearfield"):
         inputs, result, nearfield = near_field(capture, inputs, result, camera, config, log)
     with log.stage("interreflection"):
-        inputs, result, bounce_record, bounce_map = interreflection(inputs, result, camera, capture, config, log)
+        inputs, result, bounce_record, bounce_map = interreflection(inputs, result, camera, capture, config, log,
+                                                                    nearfield)
     with log.stage("validation"):
         result, validation = validate(inputs, result, config, log)
     with log.stage("checks"):
