@@ -243,21 +243,16 @@ def _check_exposure(v: float) -> float:
     return v
 
 
+#: A frame's path inside the capture folder, and an exposure time in µs, checked where they are declared.
+FramePath = Annotated[str, AfterValidator(_check_frame_path)]
+ExposureUs = Annotated[float, AfterValidator(_check_exposure)]
+
+
 class BracketFrameSpec(_Strict):
     """One more exposure of a light (format 2): the frame and its exposure time in µs."""
 
-    frame: str
-    exposure_us: float
-
-    @field_validator("frame")
-    @classmethod
-    def _frame(cls, v: str) -> str:
-        return _check_frame_path(v)
-
-    @field_validator("exposure_us")
-    @classmethod
-    def _exposure(cls, v: float) -> float:
-        return _check_exposure(v)
+    frame: FramePath
+    exposure_us: ExposureUs
 
 
 class CaptureLightSpec(LightSpec):
@@ -268,8 +263,8 @@ class CaptureLightSpec(LightSpec):
     scale at it, and ``intensity`` is as seen at it), and ``brackets``, the same light at other exposures.
     """
 
-    frame: str
-    exposure_us: float | None = None
+    frame: FramePath
+    exposure_us: ExposureUs | None = None
     brackets: tuple[BracketFrameSpec, ...] = ()
 
     @field_validator("direction")
@@ -281,16 +276,6 @@ class CaptureLightSpec(LightSpec):
                 f"must be a unit vector (|d| = {norm:.6f}, tolerance {UNIT_TOLERANCE}): divide it by its norm"
             )
         return v
-
-    @field_validator("frame")
-    @classmethod
-    def _frame(cls, v: str) -> str:
-        return _check_frame_path(v)
-
-    @field_validator("exposure_us")
-    @classmethod
-    def _exposure(cls, v: float | None) -> float | None:
-        return None if v is None else _check_exposure(v)
 
     @model_validator(mode="after")
     def _bracket(self) -> CaptureLightSpec:

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -113,8 +113,7 @@ def estimate_one_bounce(normals: Tensor, albedo: Tensor, depth: np.ndarray, came
     if hit.any():
         _, nearest = tree.query(to_numpy(bounce.hits.points)[hit])
         scale[hit] = k_b[surface][nearest]
-    bounce = type(bounce)(pixels=bounce.pixels, directions=bounce.directions, hits=bounce.hits,
-                          albedo_scale=torch.as_tensor(scale), solid_angle=bounce.solid_angle)
+    bounce = replace(bounce, albedo_scale=torch.as_tensor(scale))
     here = as_t(np.where(on, k_b[rows, cols], 0.0))
     coarse = torch.stack([one_bounce_stokes(scene, g, bounce, light, albedo_scale=here) for light in lights])  # (K, 3, h', w')
     rays_hit = float(hit.mean()) if hit.size else 0.0
