@@ -34,7 +34,7 @@ from polarshape.checks import check_dtype_floating
 from polarshape.imaging.mosaic import MosaicLayout, channel_angles_rad, check_layout, check_mosaic_shape, split_mosaic
 from polarshape.imaging.stokes import intensities_from_stokes, stokes_from_intensities
 
-__all__ = ["DEMOSAIC_METHODS", "DemosaicMethod", "block_mean_bilinear_stokes", "intensities_from_mosaic", "stokes_from_mosaic"]
+__all__ = ["DEMOSAIC_METHODS", "DemosaicMethod", "block_mean_bilinear_sites", "block_mean_bilinear_stokes", "intensities_from_mosaic", "stokes_from_mosaic"]
 
 DemosaicMethod = Literal["superpixel", "bilinear", "edge_aware"]
 DEMOSAIC_METHODS: tuple[str, ...] = ("superpixel", "bilinear", "edge_aware")
@@ -182,11 +182,6 @@ def stokes_from_mosaic(
     return stokes_from_intensities(intensities, channel_angles_rad(device=mosaic.device, dtype=mosaic.dtype))
 
 
-def _toward(g: Tensor, dim: int, after: bool) -> Tensor:
-    """¾ g + ¼ (the neighbouring sample after (or before) each one along ``dim``), edge repeated."""
-    return 0.5 * (g + _midpoints(g, dim, after))
-
-
 def block_mean_bilinear_stokes(mosaic: Tensor, layout: MosaicLayout = _IMX250MZR) -> Tensor:
     """The bilinear Stokes estimate averaged over each 2×2 block, computed at block resolution.
 
@@ -194,7 +189,7 @@ def block_mean_bilinear_stokes(mosaic: Tensor, layout: MosaicLayout = _IMX250MZR
     its block, the bilinear image of a channel at site (i, j) holds the sample g, its midpoints
     across (A g) and down (D g) and their midpoint (D A g); their mean ¼ (1 + A)(1 + D) g is the
     separable [¾, ¼] filter of the channel's own lattice toward the block's other sites — a quarter
-    of the full-resolution work and memory.
+    of the full-resolution work and memory (:func:`block_mean_bilinear_sites`).
 
     Args:
         mosaic: (*, H, W) raw mosaic, floating point, H and W even.
@@ -204,15 +199,53 @@ def block_mean_bilinear_stokes(mosaic: Tensor, layout: MosaicLayout = _IMX250MZR
         (*, 3, H/2, W/2) Stokes vectors, same dtype and device as ``mosaic``.
     """
     _prepare(mosaic, layout, "bilinear", 0.03)
-    *batch, h, w = mosaic.shape
-    m = mosaic.reshape(-1, h, w)
-    planes = []
+    intensities = block_mean_bilinear_sites(split_mosaic(mosaic, layout), layout, inplace=True)
+    return stokes_from_intensities(intensities, channel_angles_rad(device=mosaic.device, dtype=mosaic.dtype))
+
+
+def block_mean_bilinear_sites(sites: Tensor, layout: MosaicLayout = _IMX250MZR, *, inplace: bool = False) -> Tensor:
+    """The four bilinear polariser images averaged over each 2×2 block, from the block's sites.
+
+    Each channel's lattice (H, W) takes the separable filter ¾ g + ¼ (its neighbour toward the
+    block's other sites), across then down, the last sample repeated at the border
+    (:func:`block_mean_bilinear_stokes`). The weights are multiples of 1/16, so on integer counts
+    (up to 2²⁰) the result is exact in float32.
+
+    Args:
+        sites: (*, 4, H, W) images at 0°, 45°, 90°, 135° (:func:`polarshape.imaging.mosaic.split_mosaic`
+            of a mosaic of this ``layout``), floating point; H, W ≥ 1.
+        layout: the layout of the mosaic the sites come from (where each channel sits in its block).
+        inplace: overwrite ``sites`` (no new (*, 4, H, W) tensor; one (*, H, W) scratch).
+
+    Returns:
+        (*, 4, H, W) intensities, same dtype and device (``sites`` itself when ``inplace``).
+    """
+    check_dtype_floating(sites, "sites")
+    check_layout(layout)
+    out = sites if inplace else sites.clone()
+    scratch = torch.empty_like(out[..., 0, :, :])  # (*, H, W)
     for c in range(4):
         i, j = layout.site_of_channel(c)
-        g = m[:, i::2, j::2]  # (N, H/2, W/2)
-        planes.append(_toward(_toward(g, -1, after=j == 0), -2, after=i == 0))
-    intensities = torch.stack(planes, dim=1).reshape(*batch, 4, h // 2, w // 2)
-    return stokes_from_intensities(intensities, channel_angles_rad(device=mosaic.device, dtype=mosaic.dtype))
+        g = out[..., c, :, :]
+        _toward_into(g, scratch, -1, after=j == 0)  # across: scratch ← filtered g
+        _toward_into(scratch, g, -2, after=i == 0)  # down: g ← filtered scratch
+    return out
+
+
+def _toward_into(g: Tensor, out: Tensor, dim: int, after: bool) -> None:
+    """``out`` ← ¾ g + ¼ (the neighbouring sample after (or before) each one along ``dim``), edge
+    repeated; ``out`` and ``g`` of the same shape, not overlapping (no temporaries)."""
+    n = g.shape[dim]
+    torch.mul(g, 0.75, out=out)
+    if n == 1:
+        out.add_(g, alpha=0.25)
+        return
+    if after:  # out[k] += ¼ g[k + 1]
+        out.narrow(dim, 0, n - 1).add_(g.narrow(dim, 1, n - 1), alpha=0.25)
+    else:  # out[k] += ¼ g[k − 1]
+        out.narrow(dim, 1, n - 1).add_(g.narrow(dim, 0, n - 1), alpha=0.25)
+    edge = n - 1 if after else 0  # the border sample's neighbour is itself
+    out.narrow(dim, edge, 1).add_(g.narrow(dim, edge, 1), alpha=0.25)
 
 
 def intensities_from_mosaic(

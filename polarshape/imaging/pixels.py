@@ -27,6 +27,7 @@ __all__ = [
     "bayer_of",
     "bit_depth_of",
     "check_bit_depth",
+    "check_count_range",
     "counts_to_float",
     "dark_mask",
     "float_to_counts",
@@ -220,14 +221,20 @@ def counts_to_float(
     else:
         x = raw.to(device=raw.device if device is None else device, dtype=torch.float64 if raw.element_size() > 2 else work)
     if x.numel():
-        lo, hi = int(x.min()), int(x.max())
-        if lo < 0 or hi > top:
-            raise ValueError(
-                f"raw counts span [{lo}, {hi}] but a {bit_depth}-bit pixel holds [0, {top}]: check bit_depth "
-                f"(if the data are high-bit aligned in 16 bits, shift right by {16 - bit_depth})"
-            )
+        check_count_range(int(x.min()), int(x.max()), bit_depth)
     x = x.to(work).sub_(black).div_(top - black)  # (*) in place: one array of the working dtype
     return x.to(dtype)
+
+
+def check_count_range(lo: int, hi: int, bit_depth: int) -> None:
+    """Raise ValueError when counts spanning [lo, hi] do not fit a ``bit_depth``-bit pixel (e.g. high-bit
+    aligned data), naming the fix."""
+    top = max_count(bit_depth)
+    if lo < 0 or hi > top:
+        raise ValueError(
+            f"raw counts span [{lo}, {hi}] but a {bit_depth}-bit pixel holds [0, {top}]: check bit_depth "
+            f"(if the data are high-bit aligned in 16 bits, shift right by {16 - bit_depth})"
+        )
 
 
 def float_to_counts(x: np.ndarray | Tensor, bit_depth: int, black_level: float = 0) -> np.ndarray:

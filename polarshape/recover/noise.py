@@ -161,8 +161,8 @@ def estimate_noise(redundancy: Tensor, s0: Tensor, usable: Tensor, *, step: floa
         variance estimate), refined once with the bins standardised by the first line, is clamped
         to read_var ≥ step²/12 (rounding alone) and shot_gain ≥ 0.
     """
-    stride = max(1, math.ceil(2 * int(usable.sum()) / max(max_samples, 1)))  # two samples per observation
-    d, x = _detrended(redundancy.to(torch.float64), s0.to(torch.float64), usable, stride)
+    stride = max(1, math.ceil(2 * int(torch.count_nonzero(usable)) / max(max_samples, 1)))  # two samples per observation
+    d, x = _detrended(redundancy, s0, usable, stride)
     floor = quantisation_noise(step, variance_factor)
     if d.numel() < min_samples:
         logger.info("noise: %d usable observations < %d: quantisation noise only", d.numel(), min_samples)
@@ -213,8 +213,9 @@ def _detrended(d: Tensor, s0: Tensor, usable: Tensor, stride: int = 1) -> tuple[
     parts_d, parts_x = [], []
     for dim in (-1, -2):
         across = -2 if dim == -1 else -1  # the rows (columns) taken when differencing along columns (rows)
-        d_dim, s0_dim, usable_dim = (t.index_select(across, torch.arange(0, t.shape[across], stride))
+        d_dim, s0_dim, usable_dim = (t.index_select(across, torch.arange(0, t.shape[across], stride, device=t.device))
                                      if stride > 1 else t for t in (d, s0, usable))
+        d_dim, s0_dim = d_dim.to(torch.float64), s0_dim.to(torch.float64)  # the rows taken only
         n = d.shape[dim]
         if n < 3:
             continue

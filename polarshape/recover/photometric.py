@@ -384,14 +384,7 @@ def _adjugate_sym3(a: Tensor) -> tuple[Tensor, Tensor]:
     c11 = a00 * a22 - a02 * a02
     c12 = a01 * a02 - a00 * a12
     c22 = a00 * a11 - a01 * a01
-    adj = torch.stack(
-        [
-            torch.stack([c00, c01, c02], -1),
-            torch.stack([c01, c11, c12], -1),
-            torch.stack([c02, c12, c22], -1),
-        ],
-        dim=-2,
-    )
+    adj = torch.stack([c00, c01, c02, c01, c11, c12, c02, c12, c22], -1).reshape(-1, 3, 3)
     det = a00 * c00 + a01 * c01 + a02 * c02
     return adj, det
 
@@ -597,8 +590,21 @@ def _worst_outliers(
     if not bool(candidate.any()):
         return None
     score = torch.where(candidate, deleted / tau, torch.full_like(deleted, -math.inf))
-    worst = score.argmax(0)  # (P,)
-    return torch.zeros_like(used).scatter_(0, worst.unsqueeze(0), True) & candidate
+    return _first_max(score) & candidate
+
+
+def _first_max(score: Tensor) -> Tensor:
+    """(K, P) bool, True at the first largest of each column of ``score`` (K, P) — ``argmax(0)`` as a
+    one-hot mask, by a running maximum over the K rows (an ``argmax`` across the short leading axis
+    was the largest single cost of robust PS)."""
+    best = score[0].clone()  # (P,)
+    row = torch.zeros(best.shape, dtype=torch.uint8 if score.shape[0] <= 256 else torch.int64, device=score.device)
+    for k in range(1, score.shape[0]):
+        better = score[k] > best  # strictly: ties keep the first
+        best = torch.where(better, score[k], best)
+        row.masked_fill_(better, k)
+    ks = torch.arange(score.shape[0], device=score.device, dtype=row.dtype).unsqueeze(1)  # (K, 1)
+    return ks == row.unsqueeze(0)
 
 
 def _inconsistent(flat: _Flat, used: Tensor, b: Tensor, inv: Tensor, opts: _RobustOptions) -> Tensor:
