@@ -83,9 +83,9 @@ from polarshape.cameras import SAMPLE_SITES, Camera, camera_from_spec
 from polarshape.imaging.analyser import PolarimetricCalibration, calibrated_pinv, calibrated_stokes, ideal_equivalent_sites
 from polarshape.imaging.colour import bayer_reach, colour_stokes_from_mosaic, shifted_bayer
 from polarshape.imaging.demosaic import block_mean_bilinear_sites, block_mean_bilinear_stokes, stokes_from_mosaic
-from polarshape.imaging.mosaic import MosaicLayout, channel_angles_rad, split_mosaic
+from polarshape.imaging.mosaic import MosaicLayout, split_mosaic
 from polarshape.imaging.pixels import check_count_range, counts_to_float, max_count, reduce_mask_to_superpixels, saturation_count
-from polarshape.imaging.stokes import stokes_from_intensities
+from polarshape.imaging.stokes import stokes_from_four_angles
 from polarshape.errors import CaptureError
 from polarshape.io.capture import Capture
 from polarshape.io.polarimetric import capture_polarimetric_calibration
@@ -462,9 +462,9 @@ def _plain_frame(frame: np.ndarray, layout: MosaicLayout, counts: Tensor, *, bil
     torch.sum(counts, 0, out=block_s0).sub_(4.0 * black).div_(2.0 * full)  # ½ Σ (I − black) / full
     torch.div(site_redundancy(counts), full, out=redundancy)  # the black level cancels in d
     intensities = block_mean_bilinear_sites(counts, layout, inplace=True) if bilinear else counts
-    s = stokes_from_intensities(intensities, channel_angles_rad(dtype=counts.dtype))  # (3, H, W) counts
-    s[0].sub_(2.0 * black)
-    torch.div(s, full, out=stokes)
+    stokes_from_four_angles(intensities, out=stokes)  # (3, H, W) in counts: exact
+    stokes[0].sub_(2.0 * black)
+    stokes.div_(full)  # the one rounding
     return top
 
 

@@ -212,3 +212,17 @@ def test_block_mean_bilinear_equals_the_pooled_full_resolution_estimate(dx: int,
     m = torch.rand(2, 3, 10, 14, dtype=torch.float64, generator=torch.Generator().manual_seed(dx + 2 * dy))
     pooled = F.avg_pool2d(stokes_from_mosaic(m, layout, "bilinear").reshape(-1, 10, 14), 2).reshape(2, 3, 3, 5, 7)
     assert torch.allclose(block_mean_bilinear_stokes(m, layout), pooled, atol=1e-14)
+
+
+def test_block_mean_bilinear_sites_is_exact_on_counts_in_float32() -> None:
+    """Weights in 1/16: 12-bit counts give the float64 result exactly in float32 (preprocessing relies on it)."""
+    from polarshape.imaging.demosaic import block_mean_bilinear_sites
+    from polarshape.imaging.mosaic import MosaicLayout, split_mosaic
+
+    layout = MosaicLayout.imx250mzr().shifted(1, 0)
+    counts = torch.randint(0, 4096, (12, 16), generator=torch.Generator().manual_seed(2)).double()
+    sites = split_mosaic(counts, layout).float().contiguous()
+    result = block_mean_bilinear_sites(sites, layout)
+    reference = block_mean_bilinear_sites(split_mosaic(counts, layout), layout)
+    assert torch.equal(result.double(), reference)
+    assert block_mean_bilinear_sites(sites, layout, inplace=True) is sites and torch.equal(sites, result)

@@ -126,3 +126,16 @@ def test_shape_errors_name_the_expected_shape() -> None:
         dolp(torch.rand(4, 2, 2))
     with pytest.raises(TypeError, match="torch.Tensor"):
         aolp([[1.0]])  # type: ignore[arg-type]
+
+
+def test_stokes_from_four_angles_is_the_exact_inverse_of_the_ideal_polarisers() -> None:
+    from polarshape.imaging.mosaic import channel_angles_rad
+    from polarshape.imaging.stokes import stokes_from_four_angles
+
+    counts = torch.randint(0, 4096, (2, 4, 5, 7), generator=torch.Generator().manual_seed(0)).double()
+    general = stokes_from_intensities(counts, channel_angles_rad(dtype=torch.float64))
+    torch.testing.assert_close(stokes_from_four_angles(counts), general, rtol=0, atol=1e-9)
+    exact = stokes_from_four_angles(counts.float())  # integer counts: every sum exact in float32
+    assert torch.equal(exact.double(), general.round(decimals=1))
+    out = torch.empty(2, 3, 5, 7)
+    assert stokes_from_four_angles(counts.float(), out=out) is out

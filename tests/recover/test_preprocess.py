@@ -235,3 +235,44 @@ def test_preprocessing_streams_the_lights_and_keeps_directional_lights_as_views(
     if projection == "perspective":
         whole = sensor_plane_stokes(whole, basis=torch.linalg.inv(sensor_plane_basis(inp.view.double())))
     torch.testing.assert_close(inp.stokes, whole.float(), rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("black", [0.0, 64.0, 64.3])
+@pytest.mark.parametrize("demosaic", ["superpixel", "bilinear"])
+def test_block_resolution_counts_path_equals_the_float64_mosaic(demosaic: str, black: float) -> None:
+    """A mono capture without calibration is computed at block resolution in counts (float32 when the
+    black level is a multiple of 1/256 count, else float64): its Stokes vectors are the float64
+    estimate of the converted mosaic rounded once to float32 (|Δ| ≤ 2⁻²⁴ |s|), and the validity,
+    saturation, mask and polarisation verdict are those of the float64 run."""
+    from polarshape.imaging.pixels import counts_to_float
+    from polarshape.recover.preprocess import superpixel_stokes
+
+    k, h, w = 6, 24, 30
+    gen = torch.Generator().manual_seed(3)
+    stokes = _stokes(k, h, w)
+    stokes[:, 0] += 0.3 * torch.rand(k, h, w, generator=gen, dtype=torch.float64)
+    stokes[2, 0, 5:8, 5:9] = 2.5  # clipped sites
+    stokes[3, 0, 10:12, 3:6] = 0.002  # dark
+    stokes[3, 1:, 10:12, 3:6] = 0.0
+    capture = _capture(stokes)
+    capture.spec = capture.spec.model_copy(update={"camera": capture.spec.camera.model_copy(update={"black_level": black})})
+    inp32 = preprocess_capture(capture, demosaic=demosaic)
+    inp64 = preprocess_capture(capture, demosaic=demosaic, dtype=torch.float64)
+    reference = superpixel_stokes(counts_to_float(capture.frames, 12, black, dtype=torch.float64), capture.layout,
+                                  demosaic=demosaic)  # (K, 3, H, W)
+    assert inp32.stokes.dtype == torch.float32 and inp64.stokes.dtype == torch.float64
+    assert float(((inp32.stokes.double() - reference).abs() - 2.0**-24 * reference.abs()).max()) <= 1e-15
+    torch.testing.assert_close(inp64.stokes, reference, rtol=0, atol=1e-15)
+    for name in ("valid", "saturated", "mask"):
+        assert torch.equal(getattr(inp32, name), getattr(inp64, name)), name
+    assert bool(inp32.saturated[2, 5:8, 5:9].all()) and not bool(inp32.valid[3, 10:12, 3:6].any())
+    assert inp32.has_polarisation == inp64.has_polarisation
+    assert inp32.noise.read_var == pytest.approx(inp64.noise.read_var, rel=1e-3)
+    assert inp32.noise.shot_gain == pytest.approx(inp64.noise.shot_gain, rel=1e-3, abs=1e-12)
+
+
+def test_counts_above_the_bit_depth_are_refused_on_the_block_path() -> None:
+    capture = _capture(_stokes())
+    capture.frames[1, 3, 4] = 4096  # 12 bits hold 0 … 4095
+    with pytest.raises(ValueError, match="raw counts span"):
+        preprocess_capture(capture)
