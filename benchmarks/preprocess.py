@@ -3,10 +3,15 @@
     python benchmarks/preprocess.py CAPTURE_DIR [--repeat 2] [--threads 1]
     python benchmarks/preprocess.py --size 1024 --keep /tmp/cap1024   # render configs/scenes/sphere.yaml at 1024²
 
-Prints one row per repeat: seconds of :func:`polarshape.recover.preprocess.preprocess_capture` (default
-settings: bilinear at the block centres) and of :func:`polarshape.normals.initial_normals`, the number of
-valid PS normals and a checksum of the normals (to compare two versions of the code on the same capture:
-run it with ``PYTHONPATH`` pointing at each checkout, alternately).
+Prints the seconds of reading and decoding the capture (:func:`polarshape.io.capture.load_capture`, not
+part of "preprocess"), then one row per repeat: seconds of
+:func:`polarshape.recover.preprocess.preprocess_capture` (default settings: bilinear at the block centres;
+it includes the count conversion, Stokes, dark / saturated / mixed observations, mask, noise model,
+polarisation-signal verdict and the capture checks, the polarisation check among them) and of
+:func:`polarshape.normals.initial_normals` (robust PS), each as wall clock and as this process's CPU time
+(``time.process_time``: the steadier figure on a shared box), the number of valid PS normals and a
+checksum of the normals (to compare two versions of the code on the same capture: run it with
+``PYTHONPATH`` pointing at each checkout, alternately).
 """
 
 from __future__ import annotations
@@ -49,18 +54,20 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     folder = args.capture or render(args.size, args.keep or Path(f"/tmp/polarshape_bench_sphere_{args.size}"))
+    t0, c0 = time.perf_counter(), time.process_time()
     capture = load_capture(folder)
     print(f"{folder}: {capture.frames.shape[0]} frames of {capture.frames.shape[2]}×{capture.frames.shape[1]} raw; "
-          f"{platform.machine()}, {args.threads} thread(s)")
+          f"{platform.machine()}, {args.threads} thread(s); read and decoded in {time.perf_counter() - t0:.2f} s "
+          f"(CPU {time.process_time() - c0:.2f} s)")
     for _ in range(args.repeat):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         inputs = preprocess_capture(capture)
-        t1 = time.perf_counter()
+        t1, c1 = time.perf_counter(), time.process_time()
         ps = initial_normals(inputs)
-        t2 = time.perf_counter()
+        t2, c2 = time.perf_counter(), time.process_time()
         checksum = float(ps.normals[inputs.mask].double().sum())
-        print(f"preprocess {t1 - t0:.2f} s   robust PS {t2 - t1:.2f} s   valid {int(ps.valid.sum())}   "
-              f"normals checksum {checksum:.4f}")
+        print(f"preprocess {t1 - t0:.2f} s (CPU {c1 - c0:.2f} s)   robust PS {t2 - t1:.2f} s (CPU {c2 - c1:.2f} s)   "
+              f"valid {int(ps.valid.sum())}   normals checksum {checksum:.4f}")
 
 
 if __name__ == "__main__":

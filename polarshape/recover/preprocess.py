@@ -64,7 +64,10 @@ is taken (``sample_at``) and how (``demosaic``):
 Memory: the frames are converted and demosaiced one light at a time, so beyond the outputs
 preprocessing holds one frame's float64 intermediates (~0.35 GB at 2448 × 2048) and a few (K, H, W)
 float64 maps; a colour capture also keeps its (K, 3, 3, H, W) per-channel Stokes in ``dtype``
-(~0.36 GB at 2448 × 2048, K = 8, float32).
+(~0.36 GB at 2448 × 2048, K = 8, float32). A mono capture without calibration or brackets (Stokes at
+the block centres) is worked at block resolution in counts instead (:func:`_plain_frame`): one frame's
+four sites (4, H, W) and (K, H, W) maps in float32 (float64 when the black level is not a multiple of
+1/256 count or ``dtype`` is float64); its Stokes vectors are the float64 estimate rounded once.
 """
 
 from __future__ import annotations
