@@ -146,6 +146,15 @@ def to_numpy(x: Any, dtype: Any = None) -> np.ndarray:
     return out if dtype is None else out.astype(dtype, copy=False)
 
 
+def wait_for_device(device: torch.device | str) -> None:
+    """Block until the work queued on ``device`` has finished: CUDA runs asynchronously, so a wall-clock
+    time read without it measures the queueing, not the work. Nothing to wait for on the CPU (no-op).
+    One call per timed stage, never inside a loop (it is a host sync)."""
+    dev = torch.device(device)
+    if dev.type == "cuda":
+        torch.cuda.synchronize(dev)
+
+
 def check_finite(x: Tensor, name: str) -> Tensor:
     """Return ``x`` if every element is finite, else raise a ``ValueError`` naming ``name``.
 

@@ -41,6 +41,7 @@ from torch import Tensor
 from polarshape.brdf.baselines import lambertian_stokes
 from polarshape.brdf.fmbrdf import build_tables
 from polarshape.brdf.params import FMBRDF_PARAM_NAMES, FMBRDFParams
+from polarshape.checks import wait_for_device
 from polarshape.errors import CaptureError
 from polarshape.imaging.stokes import dolp
 from polarshape.io.capture import Capture
@@ -201,7 +202,8 @@ def _lambertian_solution(inputs: RecoveryInputs, ps: RobustPSResult, log: SolveL
     ps_normals, ps_albedo, filled = _fill(inputs, ps.normals, ps.albedo, log)
     normals = torch.where(mask[..., None], ps_normals, torch.full_like(ps_normals, math.nan))
     albedo = torch.where(mask, ps_albedo, torch.full_like(ps_albedo, math.nan))
-    rendered = torch.where(mask, _lambertian_stokes(inputs, ps_normals, ps_albedo), torch.zeros(()))
+    rendered = torch.where(mask, _lambertian_stokes(inputs, ps_normals, ps_albedo),
+                           torch.zeros((), dtype=ps_normals.dtype, device=mask.device))
     residual = (rendered[:, 0] - inputs.stokes[:, 0])[inputs.valid & mask]
     rms = float(residual.pow(2).mean().sqrt()) if residual.numel() else math.nan
     n_mask = int(mask.sum())
@@ -317,6 +319,7 @@ def recover_normals(
         log.skipped.append(f"crop: solved on the mask's bounding box {crop.shape} of {inputs.shape} super-pixels")
     t0 = time.perf_counter()
     ps = initial_normals(crop, initial)
+    wait_for_device(ps.normals.device)  # the time of robust PS, not of its queue
     log.timings["init_lambertian"] = time.perf_counter() - t0
     if options.model == "auto" and options.material is not None:
         model = "fmbrdf"

@@ -63,7 +63,7 @@ from polarshape.io.export import write_npy
 from polarshape.io.material import load_material
 from polarshape.imaging.demosaic import stokes_from_mosaic
 from polarshape.imaging.pixels import counts_to_float, max_count
-from polarshape.checks import resolve_device, to_numpy
+from polarshape.checks import resolve_device, to_numpy, wait_for_device
 from polarshape.io.atomic import atomic_directory, atomic_write_text
 from polarshape.io.capture import Capture, load_capture, write_capture
 from polarshape.io.polarimetric import polarimetric_calibration_record
@@ -125,9 +125,12 @@ class Surface:
 
 
 class _StageLog:
-    """Times the stages, records what they skipped, and drives the stage progress bar."""
+    """Times the stages, records what they skipped, and drives the stage progress bar. On a GPU each
+    stage's time waits for its queued kernels (:func:`~polarshape.checks.wait_for_device`), so the
+    time is the stage's, not the next one's."""
 
-    def __init__(self, progress: bool) -> None:
+    def __init__(self, progress: bool, device: str = "cpu") -> None:
+        self.device = device
         self.timings: dict[str, float] = {}
         self.skipped: list[str] = []
         self._bar = tqdm(total=len(STAGES), desc="polarshape run", unit="stage", disable=not progress, leave=False)
@@ -139,6 +142,7 @@ class _StageLog:
         before = len(self.skipped)
         t0 = time.perf_counter()
         yield
+        wait_for_device(self.device)
         self.timings[name] = seconds = time.perf_counter() - t0
         skipped = self.skipped[before:]
         logger.info("stage %s: %.2f s%s", name, seconds, f"; skipped: {'; '.join(skipped)}" if skipped else "")
@@ -846,7 +850,7 @@ def run_pipeline(
     torch.manual_seed(config.seed)
     inputs_paths = [config.input.path, config.input.scene, config.input.session, config.recovery.material,
                     config_path]
-    log = _StageLog(config.progress)
+    log = _StageLog(config.progress, device)
     try:
         refusal = lambda p: output_refusal(p, inputs_paths, overwrite=overwrite)  # noqa: E731
         with atomic_directory(out, overwrite=overwrite, protect=refusal) as work, _recorded_warnings() as warned, \

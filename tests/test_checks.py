@@ -8,7 +8,9 @@ import numpy as np
 import pytest
 import torch
 
-from polarshape.checks import check_dtype_floating, check_finite, check_shape, check_tensor, format_shape, resolve_device
+from polarshape.checks import (
+    check_dtype_floating, check_finite, check_shape, check_tensor, format_shape, resolve_device, wait_for_device,
+)
 from polarshape.cli.errors import exit_status
 from polarshape.errors import ConfigError, DeviceError, PolarshapeError, ShapeError
 
@@ -101,6 +103,16 @@ def test_resolve_device_takes_cpu_and_auto() -> None:
     assert resolve_device("cpu") == torch.device("cpu")
     assert resolve_device(torch.device("cpu")) == torch.device("cpu")
     assert resolve_device("auto") == torch.device("cuda" if torch.cuda.is_available() else "cpu")
+
+
+def test_wait_for_device_syncs_a_gpu_only(monkeypatch: pytest.MonkeyPatch) -> None:
+    calls: list[object] = []
+    monkeypatch.setattr(torch.cuda, "synchronize", lambda device=None: calls.append(device))
+    wait_for_device("cpu")
+    wait_for_device(torch.device("cpu"))
+    assert calls == []  # nothing queued on the CPU
+    wait_for_device("cuda:1")
+    assert calls == [torch.device("cuda:1")]  # that GPU, not the current one
 
 
 @pytest.mark.parametrize("name", ["gpu", "cuda:x", "", "meta"])

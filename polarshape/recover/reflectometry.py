@@ -477,10 +477,10 @@ def _lm_step(obj: _Objective, p: FMBRDFParams, names: list[str], r: Tensor, loss
         except RuntimeError:
             lam *= 10
             continue
-        step = step.clamp(-2.0, 2.0)
-        if float(step.abs().max()) < 1e-6:
+        step_host = step.clamp(-2.0, 2.0).tolist()  # D numbers, one host sync: the tables are built from them
+        if max(abs(d) for d in step_host) < 1e-6:
             break
-        trial = {n: float(_from_u(n, u[i] + step[i])) for i, n in enumerate(names)}
+        trial = {n: float(_from_u(n, u[i] + step_host[i])) for i, n in enumerate(names)}
         r_t, k_s_t, k_b_t = obj.evaluate({**_nonlinear(p), **trial}, None)
         loss_t = obj.loss_of(r_t)
         if math.isfinite(loss_t) and loss_t < loss:

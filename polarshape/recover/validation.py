@@ -462,7 +462,7 @@ def _fit_baseline(model: str, train: Observations, normals: Tensor, start: dict[
     obs, n = train.select(sub), normals[sub]
     delta = huber_delta(obs, noise_std)
     shape = dict(start)
-    fit = _Baseline(model, shape, torch.zeros((), dtype=n.dtype))
+    fit = _Baseline(model, shape, torch.zeros((), dtype=n.dtype, device=n.device))
     for _ in range(BASELINE_ROUNDS):
         shape = _fit_shape(model, n, obs, shape, polarised, delta)
         surf, body = unit_parts(model, shape, n, obs)
@@ -648,7 +648,8 @@ def validate_holdout(inputs: RecoveryInputs, result: RunResult, options: Recover
     for m, record in models.items():
         record.seconds = timings.get(m, 0.0)
     timings["total"] = time.perf_counter() - t_all
-    observed = _paste(torch.where(pixels, crop.stokes[held], torch.zeros(())), crop, stride, inputs)
+    zero = torch.zeros((), dtype=crop.stokes.dtype, device=crop.stokes.device)
+    observed = _paste(torch.where(pixels, crop.stokes[held], zero), crop, stride, inputs)
     predictions = {m: _paste(torch.stack(v), crop, stride, inputs).cpu().numpy() for m, v in images.items()}
     folds = (f"then per held-out light the normals and k_b on the other K - 1 ({FOLD_LM_ITERATIONS} LM iterations); "
              "baselines: shape parameters fitted once without the held-out lights, from the fmbrdf normals, ior and "
