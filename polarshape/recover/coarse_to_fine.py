@@ -51,7 +51,7 @@ import torch.nn.functional as F
 from torch import Tensor
 from tqdm.auto import tqdm
 
-from polarshape.brdf.fmbrdf import build_tables
+from polarshape.brdf.fmbrdf import FMBRDFTables, build_tables
 from polarshape.brdf.params import FMBRDFParams
 from polarshape.recover.joint_solve import JointResult, joint_solve, nested_kappa
 from polarshape.recover.normal_solver import (
@@ -156,7 +156,7 @@ def profile_alpha(normals: Tensor, obs: Observations, params: FMBRDFParams, per_
 
 
 def fit_albedo_scale(normals: Tensor, obs: Observations, params: FMBRDFParams, *, per_pixel_albedo: bool,
-                     polarised: bool) -> FMBRDFParams:
+                     polarised: bool, tables: FMBRDFTables | None = None) -> FMBRDFParams:
     """The albedos of a known material (μ, α, β, κ kept) for fixed normals, in closed form.
 
     Per-pixel k_b: weighted least-squares k_s and k_b (P,) (:func:`solve_albedos`); the returned
@@ -167,12 +167,14 @@ def fit_albedo_scale(normals: Tensor, obs: Observations, params: FMBRDFParams, *
     Args:
         normals: (P, 3) unit normals, camera frame. obs: the P pixels' observations.
         params: the material. per_pixel_albedo, polarised: as for :func:`fit_reflectance`.
+        tables: ``params.build_tables()`` when the caller has them.
 
     Returns:
         ``params`` with the solved k_s and k_b.
     """
     with torch.no_grad():
-        surf, body = render_parts(params.build_tables(device=normals.device), normals, obs)  # (P, K, 3) each
+        tables = params.build_tables(device=normals.device) if tables is None else tables
+        surf, body = render_parts(tables, normals, obs)  # (P, K, 3) each
         if per_pixel_albedo:
             k_s, k_b = solve_albedos(surf, body, obs, per_pixel=True, polarised=polarised)
             k_b_med = float(k_b[k_b > 0].median()) if bool((k_b > 0).any()) else 0.0

@@ -4,15 +4,17 @@ solve on a small sphere cap whose two halves are different materials."""
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import pytest
 import torch
 
-from polarshape.brdf import fmbrdf_stokes
+from polarshape.brdf import baek_pbrdf_stokes, fmbrdf_stokes
 from polarshape.brdf.params import FMBRDFParams
 from polarshape.recover.coarse_to_fine import solve_fmbrdf
 from polarshape.recover.materials import (
-    boundary_pixels, pixel_losses, potts_energy, potts_icm, region_inputs, solve_materials,
+    MIN_HELD_OUT_GAIN, boundary_pixels, material_tables, pixel_losses, potts_energy, potts_icm, region_inputs,
+    select_materials, solve_materials,
 )
 from polarshape.recover.observations import RecoveryInputs, flatten_observations
 from polarshape.recover.options import RecoveryOptions
@@ -22,9 +24,11 @@ ROUGH = FMBRDFParams(ior=1.45, alpha=0.45, beta=2.0, kappa=0.0, k_s=1.0, k_b=0.5
 
 
 def _cap_inputs(n: int, materials: tuple[FMBRDFParams, ...], *, k: int = 12, noise: float = 2e-3,
-                seed: int = 0) -> tuple[RecoveryInputs, torch.Tensor, torch.Tensor]:
+                seed: int = 0, render: Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor] | None = None
+                ) -> tuple[RecoveryInputs, torch.Tensor, torch.Tensor]:
     """A sphere cap (n × n pixels, K directional lights) whose right half (x > 0) is ``materials[-1]``
-    and left half ``materials[0]``, with Gaussian noise; returns inputs, true normals, true labels."""
+    and left half ``materials[0]`` (or all of it rendered by ``render(normals, lights, view)`` → Stokes
+    (K, n, n, 3)), with Gaussian noise; returns inputs, true normals, true labels."""
     y, x = torch.meshgrid(torch.linspace(-0.8, 0.8, n, dtype=torch.float64),
                           torch.linspace(-0.8, 0.8, n, dtype=torch.float64), indexing="ij")
     mask = x * x + y * y < 0.6
@@ -40,6 +44,8 @@ def _cap_inputs(n: int, materials: tuple[FMBRDFParams, ...], *, k: int = 12, noi
     for m, p in enumerate(materials):
         sm = fmbrdf_stokes(normals.unsqueeze(0), lights, view.unsqueeze(0), **p.as_kwargs())  # (K, n, n, 3)
         s = torch.where((labels == m)[None, ..., None], sm, s)
+    if render is not None:
+        s = render(normals.unsqueeze(0), lights, view.unsqueeze(0))
     gen = torch.Generator().manual_seed(seed)
     s = 0.25 * s + noise * torch.randn(s.shape, generator=gen, dtype=torch.float64)
     valid = mask.expand(k, n, n) & (s[..., 0] > 5 * noise)
@@ -106,6 +112,8 @@ def test_one_material_stays_one_and_materials_1_is_todays_solve() -> None:
     auto = solve_materials(inputs, ps, options)
     assert len(auto.params) == 1, auto.selection
     assert auto.selection and not auto.selection[0]["kept"]  # a split was tried and did not pay
+    tried = auto.selection[0]  # refused by the early test (the 80² benchmark captures) or held out
+    assert tried["decided"] == "early" or tried["held_out_gain"] < MIN_HELD_OUT_GAIN, auto.selection
     assert torch.equal(torch.nan_to_num(auto.normals), torch.nan_to_num(today.normals))
     assert bool((auto.labels[inputs.mask] == 0).all()) and not bool(auto.mixed.any())
 
@@ -117,6 +125,9 @@ def test_two_materials_found_and_assigned() -> None:
     options = RecoveryOptions(max_outer_iterations=6, subsample_pixels=256, fit_kappa=False)
     got = solve_materials(inputs, ps, options)
     assert len(got.params) == 2, got.selection
+    first = got.selection[0]
+    assert first["decided"] == "held-out" and first["kept"]
+    assert first["held_out_gain"] > MIN_HELD_OUT_GAIN, got.selection  # the lights that did not label agree
     glossy = min(range(2), key=lambda m: got.params[m].alpha)
     predicted = torch.where(got.labels == glossy, 1, 0)
     inner = inputs.mask & ~boundary_pixels(labels, inputs.mask) & ~got.mixed
@@ -138,3 +149,38 @@ def test_the_materials_option_is_auto_or_a_small_number() -> None:
     for bad in (0, 5, "two", 2.0):
         with pytest.raises(ValidationError, match="materials"):
             RecoveryOptions(materials=bad)
+
+
+@pytest.mark.slow
+def test_a_material_the_model_does_not_explain_stays_one() -> None:
+    """Baek's pBRDF (GGX) rendered, the FMBRDF fitted: one material, and a split made anyway scores
+    below the threshold on the held-out lights. (On this small cap the split buys nothing even
+    in-sample; benchmarks/materials.py --cases mismatch_... measures Baek spheres and a blob at 80²,
+    where it buys 14–38 % in-sample and predicts the held-out lights 5–26 % better.)"""
+    def baek(normals: torch.Tensor, lights: torch.Tensor, view: torch.Tensor) -> torch.Tensor:
+        return baek_pbrdf_stokes(normals, lights, view, ior=1.5, k_s=1.0, k_d=0.5, alpha=0.25, distribution="ggx")
+
+    inputs, normals, _ = _cap_inputs(16, (ROUGH,), noise=5e-4, render=baek)
+    options = RecoveryOptions(max_outer_iterations=4, subsample_pixels=128, fit_kappa=False)
+    state, _ = solve_fmbrdf(inputs, _start(normals), options)
+    chosen, records, _, _ = select_materials(inputs, state, options, wanted=None)
+    assert len(chosen) == 1 and not records[0]["kept"], records
+    # the split made anyway (materials: 2): its decision statistic stays below the threshold
+    _, forced, _, _ = select_materials(inputs, state, options, wanted=2)
+    assert forced[0]["decided"] == "held-out", forced
+    assert forced[0]["held_out_gain"] < MIN_HELD_OUT_GAIN, forced
+
+
+def test_material_tables_are_built_once_per_material() -> None:
+    inputs, normals, _ = _cap_inputs(8, (ROUGH,), noise=1e-4)
+    obs = flatten_observations(inputs, inputs.mask)
+    cache: dict = {}
+    first = material_tables(ROUGH, torch.device("cpu"), cache)
+    assert material_tables(ROUGH, torch.device("cpu"), cache) is first
+    assert material_tables(FMBRDFParams(**{**ROUGH.as_kwargs(), "k_s": 3.0}), torch.device("cpu"), cache) is first
+    assert material_tables(ROUGH, torch.device("cpu"), cache, n_grid=33) is not first
+    assert material_tables(GLOSSY, torch.device("cpu"), cache) is not first
+    assert len(cache) == 3
+    kw = {"per_pixel_albedo": True, "polarised": True, "delta": 0.01}
+    assert torch.equal(pixel_losses([ROUGH, GLOSSY], normals[inputs.mask], obs, cache=cache, **kw),
+                       pixel_losses([ROUGH, GLOSSY], normals[inputs.mask], obs, **kw))
