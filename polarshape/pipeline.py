@@ -54,7 +54,7 @@ from tqdm import tqdm
 
 from polarshape import __version__
 from polarshape.cameras import Camera
-from polarshape.config import RunConfig
+from polarshape.config import RecoveryOptions, RunConfig
 from polarshape.errors import (
     CaptureError, ConfigError, InterreflectionWarning, NearFieldDepthWarning, PipelineError, PolarshapeWarning,
     SelfCheckError,
@@ -315,6 +315,17 @@ def integrate(result: NormalsResult, camera: Camera, config: RunConfig, nearfiel
 # --- near-field lights -------------------------------------------------------------------------
 
 
+def _first_recovery(capture: Capture, config: RunConfig, log: _StageLog) -> RecoveryOptions:
+    """The recovery stage's options. When the ``nearfield`` stage will run, it fits the run's model again at the
+    lights it moves to the surface, and a fit at the lights placed from the reference plane would be discarded:
+    the stage then gives a Lambertian start (robust PS, milliseconds)."""
+    if near_field_active(config.nearfield, capture.lights()) and f"integration: {_NO_METRIC_SCALE}" not in log.skipped:
+        log.skip("recovery", "a Lambertian start: the model is fitted in the nearfield stage, at the lights moved to "
+                 "the surface")
+        return config.recovery.model_copy(update={"model": "lambertian"})
+    return config.recovery
+
+
 def near_field(capture: Capture, inputs: RecoveryInputs, result: NormalsResult, camera: Camera, config: RunConfig,
                log: _StageLog) -> tuple[RecoveryInputs, NormalsResult, NearFieldResult | None]:
     """Point lights: L and E moved to the recovered surface and the absolute depth estimated from the
@@ -343,6 +354,8 @@ def near_field(capture: Capture, inputs: RecoveryInputs, result: NormalsResult, 
     )
     for item in found.skipped:
         log.skip("nearfield", item)
+    for item in found.result.skipped:  # the fit the run keeps (the recovery stage's was a Lambertian start)
+        log.skip("recovery", item)
     return found.inputs, found.result, found
 
 
@@ -909,9 +922,9 @@ def _run_stages(config: RunConfig, work: Path, out: Path, device: str, log: _Sta
     with log.stage("preprocess"):
         inputs, camera = preprocess(capture, config, log, device=device, dtype=dtype)
     with log.stage("recovery"):
-        result = recover_normals(inputs, config.recovery, config.initial_normals, seed=config.seed,
-                                 progress=config.progress)
-        for item in result.skipped:
+        recovery = _first_recovery(capture, config, log)
+        result = recover_normals(inputs, recovery, config.initial_normals, seed=config.seed, progress=config.progress)
+        for item in result.skipped if recovery is config.recovery else ():  # else: the nearfield stage's fit's
             log.skip("recovery", item)
     with log.stage("nearfield"):
         inputs, result, nearfield = near_field(capture, inputs, result, camera, config, log)

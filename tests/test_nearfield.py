@@ -189,3 +189,36 @@ def test_pipeline_writes_the_near_field_depth_and_rounds(tmp_path: Path) -> None
     assert np.nanmedian(depth) == pytest.approx(record["median_depth_m"], rel=0.01)
     assert "near-field: object at" in params["summary"] and "point lights' shading" in params["mesh"]["scale"]
     assert "Near-field lights" in (result.out_dir / "report.html").read_text()
+
+
+def test_model_depth_search_is_unbiased_on_a_bumpy_glossy_blob(tmp_path: Path) -> None:
+    """The FMBRDF-corrected depth search, given the true shape and normals of a bumpy glossy blob under the LED
+    ring, finds its distance within 1 %: with the true material, and with its specular albedo k_s off by 2 (as
+    a fit at another placement leaves it), which the search re-fits per candidate. Measured: −0.13 % in both;
+    before, the observations whose N·L crossed the threshold at a candidate were zeroed there but still fitted
+    (+1.8 % with the true material) and k_s was held (+7.5 % with it doubled)."""
+    from polarshape.brdf.fmbrdf import build_tables
+    from polarshape.nearfield import ModelShading, estimate_depth_placement
+
+    material = {"ior": 1.5, "alpha": 0.3, "beta": 2.0, "kappa": 20.0}
+    scene = _scene()
+    scene["camera"].update(width=96, height=96, intrinsics={"fx": 337.5, "fy": 337.5, "cx": 47.5, "cy": 47.5})
+    scene["objects"] = [{
+        "shape": {"type": "blob", "center": [0.0, 0.0, DISTANCE], "radius": RADIUS, "bumps": 24, "amplitude": 0.25,
+                  "width": 0.3, "seed": 2},
+        "material": {"model": "fmbrdf", "k_s": 1.0, "k_b": 0.6, **material}}]
+    with SimulatedCamera(parse_scene_config(scene), seed=5) as sim:
+        capture = sim.render_capture(tmp_path / "capture", progress=False)
+    camera = capture_camera(capture, "centre", None)
+    truth = capture.ground_truth["depth"]
+    mask = np.isfinite(truth)
+    inputs = preprocess_capture(capture, points=camera.unproject(np.where(mask, truth, DISTANCE)), dtype=torch.float64)
+    normals = torch.from_numpy(np.where(mask[..., None], capture.ground_truth["normals"], np.nan))
+    true_median = float(np.median(truth[inputs.mask.numpy()]))
+    tables = build_tables(**material)
+    fitted = ModelShading(tables, 0.0, normals).at(inputs).k_s
+    for k_s in (fitted, 2 * fitted):
+        found, _ = estimate_depth_placement(
+            inputs, inputs.valid, truth / true_median, camera, capture.lights(), reference_depth=0.97 * true_median,
+            search_factor=1.25, scan_points=24, model=ModelShading(tables, k_s, normals))
+        assert abs(found / true_median - 1) < 0.01, (k_s, found / true_median - 1)
