@@ -54,19 +54,34 @@ class AlbedoEdges:
     on_edge: Tensor
 
 
-def _shifted(x: Tensor, dy: int, dx: int, fill: float | bool) -> Tensor:
-    """x (…, H, W) moved so that out[…, y, x] = x[…, y + dy, x + dx] (``fill`` beyond the border)."""
+def _gather(x: Tensor, ys: Tensor, xs: Tensor) -> tuple[Tensor, Tensor]:
+    """x (K, H, W) at the blocks (ys, xs) (N,) each: (K, N) values (clamped at the border) and (N,) in-bounds."""
     h, w = x.shape[-2:]
-    out = torch.full_like(x, fill)
-    ys, yd = slice(max(dy, 0), h + min(dy, 0)), slice(max(-dy, 0), h + min(-dy, 0))
-    xs, xd = slice(max(dx, 0), w + min(dx, 0)), slice(max(-dx, 0), w + min(-dx, 0))
-    out[..., yd, xd] = x[..., ys, xs]
-    return out
+    inside = (ys >= 0) & (ys < h) & (xs >= 0) & (xs < w)
+    return x[:, ys.clamp(0, h - 1), xs.clamp(0, w - 1)], inside
+
+
+def _candidates(log_s0: Tensor, usable: Tensor, oy: int, ox: int, threshold: float) -> tuple[Tensor, Tensor]:
+    """Blocks a whose log-ratio to a + (oy, ox) may be one albedo step (the cheap necessary part of
+    :func:`_consistent_step`, over the whole grid): their rows and columns (N,) each."""
+    h, w = log_s0.shape[-2:]
+    c0, c1 = max(0, -ox), w - max(0, ox)
+    a = (slice(None), slice(0, h - oy), slice(c0, c1))
+    b = (slice(None), slice(oy, h), slice(c0 + ox, c1 + ox))
+    q = log_s0[b] - log_s0[a]  # (K, H − oy, W − |ox|)
+    both = usable[a] & usable[b]
+    inf = torch.tensor(math.inf, dtype=q.dtype, device=q.device)
+    q_max = torch.where(both, q, -inf).amax(0)
+    q_min = torch.where(both, q, inf).amin(0)
+    up = (q_max >= threshold) & (q_min >= -0.1 * q_max)
+    down = (q_min <= -threshold) & (q_max <= -0.1 * q_min)
+    ys, xs = torch.nonzero(up | down, as_tuple=True)
+    return ys, xs + c0
 
 
 def _consistent_step(q: Tensor, usable: Tensor, threshold: float, max_spread: float, min_lights: int
                      ) -> tuple[Tensor, Tensor]:
-    """Whether log-ratios q (K, H, W) show one albedo step, and which lights see it clearly.
+    """Whether log-ratios q (K, N) show one albedo step, and which lights see it clearly.
 
     A surface reflection (untextured) shrinks the step in s0 toward 1 under a light where it is strong,
     so the step is measured on the lights where it is largest: at least ``min_lights`` of them within
@@ -74,48 +89,42 @@ def _consistent_step(q: Tensor, usable: Tensor, threshold: float, max_spread: fl
     opposite sign (beyond a tenth of the step).
 
     Returns:
-        step (H, W) int8: +1 brighter, −1 darker, 0 none; clear (K, H, W) bool lights that see it.
+        ok (N,) bool; clear (K, N) bool lights that see it.
     """
-    out = torch.zeros(q.shape[1:], dtype=torch.int8, device=q.device)
-    clear = torch.zeros_like(usable)
-    for sign in (1, -1):
-        qs = torch.where(usable, sign * q, torch.zeros_like(q))  # (K, H, W)
-        top = qs.amax(0)  # (H, W)
-        near_top = usable & (qs >= (1 - max_spread) * top)
-        ok = (top >= threshold) & (near_top.sum(0) >= min_lights)
-        ok &= (torch.where(usable, qs, torch.zeros_like(qs)) >= -0.1 * top).all(0)
-        out = torch.where(ok, torch.full_like(out, sign), out)
-        clear |= near_top & ok
-    return out, clear
+    inf = torch.tensor(math.inf, dtype=q.dtype, device=q.device)
+    q_max = torch.where(usable, q, -inf).amax(0)
+    q_min = torch.where(usable, q, inf).amin(0)
+    up = (q_max >= threshold) & (q_min >= -0.1 * q_max)
+    down = (q_min <= -threshold) & (q_max <= -0.1 * q_min)
+    sign = up.to(q.dtype) - down.to(q.dtype)  # (N,)
+    top = torch.where(up, q_max, -q_min)
+    clear = usable & (sign * q >= (1 - max_spread) * top) & (up | down)
+    return (up | down) & (clear.sum(0) >= min_lights), clear
 
 
-def _isolated_step(log_s0: Tensor, usable: Tensor, dy: int, dx: int, lo: int, hi: int, threshold: float,
-                   max_spread: float, min_lights: int, flat: float = 0.25) -> tuple[Tensor, Tensor, Tensor]:
-    """The step from block b + lo·o to b + hi·o (o = (dy, dx)), at b, where the radiance is flat on both
-    sides of it (a step, not a shading ramp): under the lights that see the step clearly, the change from
-    b + (lo − 1)·o to b + lo·o and from b + hi·o to b + (hi + 1)·o is at most ``flat`` of it, seen under
-    at least ``min_lights`` of them (a step at the border of the usable observations is not taken).
-
-    Args:
-        log_s0: (K, H, W) log of the blocks' s0 (any value where not usable).
-        usable: (K, H, W) bool.
+def _isolated_steps(log_s0: Tensor, usable: Tensor, dy: int, dx: int, span: int, threshold: float,
+                    max_spread: float, min_lights: int, flat: float = 0.25) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The blocks a with a step from a to a + span·o (o = (dy, dx)) where the radiance is flat on both sides
+    of it (a step, not a shading ramp): under the lights that see the step clearly, the change from a − o to
+    a and from a + span·o to a + (span + 1)·o is at most ``flat`` of it, seen under at least ``min_lights``
+    of them (a step at the border of the usable observations is not taken).
 
     Returns:
-        step (H, W) int8 (:func:`_consistent_step`), clear (K, H, W) bool, the log-step (K, H, W).
+        rows, columns (N,) of those blocks a, clear (K, N) lights, log-steps (K, N).
     """
-    def at(x: Tensor, i: int, fill: float | bool) -> Tensor:
-        return _shifted(x, i * dy, i * dx, fill)
-
-    total = at(log_s0, hi, 0.0) - at(log_s0, lo, 0.0)  # (K, H, W)
-    both = at(usable, lo, False) & at(usable, hi, False)
-    step, clear = _consistent_step(total, both, threshold, max_spread, min_lights)
-    for a, b in ((lo - 1, lo), (hi, hi + 1)):
-        side = at(log_s0, b, 0.0) - at(log_s0, a, 0.0)
-        seen = at(usable, a, False) & at(usable, b, False)
-        steep = (clear & seen & (side.abs() > flat * total.abs())).any(0)
-        unseen = (clear & seen).sum(0) < min_lights
-        step = torch.where(steep | unseen, torch.zeros_like(step), step)
-    return step, clear, total
+    ys, xs = _candidates(log_s0, usable, span * dy, span * dx, threshold)
+    start, ok_a = _gather(log_s0, ys, xs)[0], _gather(usable, ys, xs)[0]
+    end, ok_b = _gather(log_s0, ys + span * dy, xs + span * dx)[0], _gather(usable, ys + span * dy, xs + span * dx)[0]
+    total = end - start  # (K, N)
+    keep, clear = _consistent_step(total, ok_a & ok_b, threshold, max_spread, min_lights)
+    for i, j in ((-1, 0), (span, span + 1)):
+        v1, in1 = _gather(log_s0, ys + i * dy, xs + i * dx)
+        v2, in2 = _gather(log_s0, ys + j * dy, xs + j * dx)
+        seen = clear & _gather(usable, ys + i * dy, xs + i * dx)[0] & _gather(usable, ys + j * dy, xs + j * dx)[0]
+        seen &= (in1 & in2).unsqueeze(0)
+        steep = (seen & ((v2 - v1).abs() > flat * total.abs())).any(0)
+        keep &= ~steep & (seen.sum(0) >= min_lights)
+    return ys[keep], xs[keep], clear[:, keep], total[:, keep]
 
 
 def find_albedo_edges(
@@ -125,54 +134,56 @@ def find_albedo_edges(
     min_ratio: float = 1.25,
     max_spread: float = 0.35,
     min_lights: int = 2,
+    share: float = 0.1,
 ) -> AlbedoEdges:
     """Blocks next to and on an albedo step, from the blocks' own s0 under every light (module docstring).
+
+    The whole grid is scanned once per direction for the cheap part of the test; the rest runs on the few
+    candidate blocks only.
 
     Args:
         block_s0: (K, H, W) s0 of each 2×2 block from its own four sites (½ Σ), fraction of full scale.
         usable: (K, H, W) bool observations to compare (lit, unsaturated, in the mask).
         min_ratio: the smallest albedo ratio between neighbours taken for a step (> 1).
-        max_spread: the most the log-ratio may vary between lights, as a fraction of its size.
+        max_spread: the lights that see the step clearly are within this fraction of the largest log-ratio.
         min_lights: the fewest lights a step must be seen under (≥ 2: one light cannot tell albedo
             from shading).
+        share: a block on a step lies at least this fraction of the log-step from either side.
 
     Returns:
         :class:`AlbedoEdges` on the (H, W) grid.
 
     Raises:
-        ValueError: shapes that differ; min_ratio ≤ 1; max_spread < 0; min_lights < 2.
+        ValueError: shapes that differ; min_ratio ≤ 1; max_spread outside [0, 1); min_lights < 2.
     """
     check_shape(block_s0, ["K", "H", "W"], "block_s0")
     if usable.shape != block_s0.shape:
         raise ValueError(f"usable: shape {tuple(usable.shape)} must be block_s0's {tuple(block_s0.shape)}")
     if not min_ratio > 1:
         raise ValueError(f"min_ratio must be > 1 (an albedo ratio between neighbours); got {min_ratio!r}")
-    if not max_spread >= 0:
-        raise ValueError(f"max_spread must be ≥ 0; got {max_spread!r}")
+    if not 0 <= max_spread < 1:
+        raise ValueError(f"max_spread must be in [0, 1); got {max_spread!r}")
     if min_lights < 2:
         raise ValueError(f"min_lights must be ≥ 2 (one light cannot tell albedo from shading); got {min_lights!r}")
     tiny = 1e-6
     ok = usable & (block_s0 > tiny)
-    log_s0 = torch.log(block_s0.clamp_min(tiny))
+    log_s0 = torch.log(block_s0.to(torch.float32).clamp_min(tiny))
     threshold = math.log(min_ratio)
     h, w = block_s0.shape[-2:]
     adjacent = torch.zeros((h, w), dtype=torch.bool, device=block_s0.device)
     on_edge = torch.zeros_like(adjacent)
     for dy, dx in _AXES:
-        forward, _, _ = _isolated_step(log_s0, ok, dy, dx, 0, 1, threshold, max_spread, min_lights)  # b → b + o
-        adjacent |= (forward != 0) | (_shifted(forward, -dy, -dx, 0) != 0)  # a step to b + o or from b − o
-        on_edge |= _between(log_s0, ok, dy, dx, threshold, max_spread, min_lights)
-    for dy in (-1, 0, 1):  # the neighbours of a mixed block interpolate from it
-        for dx in (-1, 0, 1):
-            adjacent |= _shifted(on_edge, dy, dx, False)
+        ys, xs, _, _ = _isolated_steps(log_s0, ok, dy, dx, 1, threshold, max_spread, min_lights)
+        adjacent[ys, xs] = True
+        adjacent[ys + dy, xs + dx] = True
+        # a block b = a + o between a and a + 2o: its s0 at least ``share`` of the log-step from each side
+        ys, xs, clear, total = _isolated_steps(log_s0, ok, dy, dx, 2, threshold, max_spread, min_lights)
+        mid, ok_mid = _gather(log_s0, ys + dy, xs + dx)[0], _gather(ok, ys + dy, xs + dx)[0]
+        part = (mid - log_s0[:, ys, xs]) / torch.where(total.abs() > 0, total, torch.ones_like(total))
+        seen = clear & ok_mid
+        inside = (part >= share) & (part <= 1 - share)
+        between = (inside | ~seen).all(0) & (seen.sum(0) >= min_lights)
+        on_edge[ys[between] + dy, xs[between] + dx] = True
+    # the neighbours of a mixed block interpolate from it
+    adjacent |= torch.nn.functional.max_pool2d(on_edge[None, None].float(), 3, stride=1, padding=1)[0, 0] > 0
     return AlbedoEdges(adjacent=adjacent, on_edge=on_edge)
-
-
-def _between(log_s0: Tensor, usable: Tensor, dy: int, dx: int, threshold: float, max_spread: float,
-             min_lights: int, share: float = 0.1) -> Tensor:
-    """(H, W) bool blocks b on an isolated step from b − o to b + o whose s0 lies between theirs under every
-    light that sees the step clearly: at least ``share`` of the log-step from each side (a mixed block)."""
-    step, clear, total = _isolated_step(log_s0, usable, dy, dx, -1, 1, threshold, max_spread, min_lights)
-    part = (log_s0 - _shifted(log_s0, -dy, -dx, 0.0)) / torch.where(total.abs() > 0, total, torch.ones_like(total))
-    inside = (part >= share) & (part <= 1 - share)
-    return (step != 0) & (inside | ~clear).all(0)

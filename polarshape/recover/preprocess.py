@@ -303,7 +303,7 @@ def preprocess_capture(
     edges = None
     if albedo_edges and bayer is None:  # a colour capture's blocks differ in colour under every light: no test
         edges = find_albedo_edges(block_s0, ~dark & ~saturated & mask.unsqueeze(0))
-        _superpixel_next_to_edges(stokes, edges, frames, capture, polcal, brackets, to_frames, demosaic=demosaic)
+        _superpixel_next_to_edges(stokes, edges, mask, frames, capture, polcal, brackets, to_frames, demosaic=demosaic)
         valid &= ~edges.on_edge.unsqueeze(0)
     if polcal is not None:  # blocks with too few good sites (≥ 2 defects) carry no Stokes vector
         valid &= polcal.valid.unsqueeze(0)
@@ -582,12 +582,13 @@ def _mixed_from_scaled(d: Tensor, usable: Tensor, *, n_sigma: float | None) -> T
 # --- albedo edges (polarshape.recover.edges) ----------------------------------------------------
 
 
-def _superpixel_next_to_edges(stokes: Tensor, edges: AlbedoEdges, frames: np.ndarray, capture: Capture,
+def _superpixel_next_to_edges(stokes: Tensor, edges: AlbedoEdges, mask: Tensor, frames: np.ndarray, capture: Capture,
                               polcal: _PolcalApplication | None, brackets: BracketMerger | None,
                               to_frames: Tensor | None, *, demosaic: str) -> None:
-    """Replace in place the bilinear Stokes (K, 3, H, W) of blocks next to an albedo step (and not on it)
-    with the block's own four-site estimate: the interpolation from the other side is a false polarisation."""
-    swap = edges.adjacent & ~edges.on_edge  # (H, W)
+    """Replace in place the bilinear Stokes (K, 3, H, W) of the ``mask`` blocks next to an albedo step (and not
+    on it) with the block's own four-site estimate: the interpolation from the other side is a false polarisation.
+    The frames are read again only when there is such a block."""
+    swap = edges.adjacent & ~edges.on_edge & mask  # (H, W)
     if demosaic != "bilinear" or not bool(swap.any()):
         return
     for i in range(stokes.shape[0]):
