@@ -14,9 +14,10 @@ light to light. Two harms follow, both a false linear polarisation (measured on
   leaves I0 + I90 = I45 + I135).
 
 :func:`find_albedo_edges` finds both from the blocks' own s0 (½ Σ of their four sites, free of
-polarisation) under all K lights: the pair (b, b') has a step when log(s0_b' / s0_b) has one sign,
-at least ``log(min_ratio)`` in size, under every light where both are usable, and varies between the
-lights by at most ``max_spread`` of its size (at least two such lights). A block with a step to a
+polarisation) under all K lights: the pair (b, b') has a step when log(s0_b' / s0_b) is at least
+``log(min_ratio)`` under the light that sees it most, at least ``min_lights`` lights see it within
+``max_spread`` of that (a strong untextured surface reflection shrinks the ratio under some lights), no
+light sees the opposite sign, and s0 is flat on both sides of it (a step, not a shading ramp). A block with a step to a
 neighbour is ``adjacent``; one whose s0 lies strictly between two opposite neighbours', with a step
 to each (along a row, a column or a diagonal), is ``on_edge``. Preprocessing then takes the plain
 super-pixel estimate (the block's own four sites) where a block is adjacent and not on the edge, and
