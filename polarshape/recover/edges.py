@@ -18,8 +18,9 @@ polarisation) under all K lights: the pair (b, b') has a step when log(s0_b' / s
 ``log(min_ratio)`` under the light that sees it most, at least ``min_lights`` lights see it within
 ``max_spread`` of that (a strong untextured surface reflection shrinks the ratio under some lights), no
 light sees the opposite sign, and s0 is flat on both sides of it (a step, not a shading ramp). A block with a step to a
-neighbour is ``adjacent``; one whose s0 lies strictly between two opposite neighbours', with a step
-to each (along a row, a column or a diagonal), is ``on_edge``. Preprocessing then takes the plain
+neighbour (or next to a block on the edge) is ``adjacent``; a block b between two opposite neighbours
+(along a row, a column or a diagonal) with such a step from one to the other, its own s0 at least ``share``
+of the log-step from each, is ``on_edge`` (its sites see both albedos). Preprocessing then takes the plain
 super-pixel estimate (the block's own four sites) where a block is adjacent and not on the edge, and
 leaves the observations of blocks on the edge out (their normals and albedo filled from the
 neighbours, as for other pixels without data; the run writes them into ``mixed.png``).
