@@ -124,6 +124,10 @@ class PreprocessConfig(_Strict):
         "centre", description="where in each 2x2 block the normals are estimated: the block centre, or one site "
         "(e.g. top_left, the IMX250MZR's 90 degree site)"
     )
+    albedo_edges: bool = Field(
+        True, description="find texture (albedo) steps from every light (polarshape.recover.edges): blocks next to "
+        "one take their own four sites' estimate, blocks on one are left out and marked in mixed.png; mono only"
+    )
     polarisation_check: bool = Field(
         True, description="refuse frames without the polarisation signal a raw mosaic of an object carries (a "
         "demosaiced or plain image saved as a frame; polarshape.recover.diagnose.check_polarisation_signal); "

@@ -90,7 +90,8 @@ class NormalsResult:
             the mask; None for the Lambertian model. With several materials ``params`` is the one
             with the most pixels (:mod:`polarshape.recover.materials`).
         material_params: every material's parameters (one dict per material, as ``params``).
-        mixed: (H, W) bool pixels on a material edge (left out of the material fits), or None.
+        mixed: (H, W) bool pixels on a material edge (left out of the material fits), or None; ``polarshape
+            run`` adds the pixels on an albedo edge (``RecoveryInputs.albedo_edges``, left out of every fit).
         material_selection: one record per split the model choice tried (gain, penalty, kept).
     """
 

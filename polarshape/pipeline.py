@@ -279,7 +279,7 @@ def preprocess(capture: Capture, config: RunConfig, log: _StageLog, *, device: s
     inputs = preprocess_capture(
         dataclasses.replace(capture, mask=mask), dtype=dtype, device=device, dark_threshold=options.dark_threshold,
         saturation_margin=options.saturation_margin_counts, points=points, demosaic=options.demosaic,
-        sample_at=options.sample_at, polarisation_check=options.polarisation_check,
+        sample_at=options.sample_at, polarisation_check=options.polarisation_check, albedo_edges=options.albedo_edges,
     )
     if not options.polarisation_check:
         log.skip("preprocess", "polarisation check off (preprocess.polarisation_check: false)")
@@ -744,6 +744,15 @@ def _colour_capture_record(capture: Capture) -> dict[str, Any]:
     return {} if bayer is None else {"bayer": bayer}
 
 
+def _mark_albedo_edges(result: NormalsResult, inputs: RecoveryInputs) -> NormalsResult:
+    """The pixels on an albedo step (preprocessing left their observations out: polarshape.recover.edges)
+    join the material edges' ``mixed`` (mixed.png, params.json's ``mixed_pixels``)."""
+    if inputs.albedo_edges is None or result.materials is None:
+        return result
+    edges = inputs.albedo_edges.to(result.mask.device) & result.mask
+    return dataclasses.replace(result, mixed=edges if result.mixed is None else result.mixed | edges)
+
+
 def _materials_record(result: NormalsResult) -> dict[str, Any]:
     """params.json's ``materials`` (every material's parameters and pixel count; ``params`` is the
     one with the most pixels), ``material_selection`` (the splits tried) and ``mixed_pixels``."""
@@ -936,6 +945,7 @@ def _run_stages(config: RunConfig, work: Path, out: Path, device: str, log: _Sta
     with log.stage("checks"):
         checks = run_self_checks(capture, inputs, result, validation.as_dict() if validation.ran else None,
                                  earlier=list(warned), fitted_material=not _material_fixed(config))
+    result = _mark_albedo_edges(result, inputs)
     with log.stage("integration"):
         surface = integrate(result, camera, config, nearfield)
     with log.stage("mesh"):

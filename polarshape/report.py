@@ -1034,7 +1034,7 @@ def _materials_table(params: dict[str, Any]) -> str:
                       f"{_fmt(r.get('penalty'))} ({'kept' if r.get('kept') else 'not kept'})"
                       for r in params.get("material_selection") or [])
     note = (f"{len(materials)} material(s) (materials.png / materials.npy; 'params' is the one with the most "
-            f"pixels); {_fmt(params.get('mixed_pixels'))} pixels on material edges (mixed.png), left out of the "
+            f"pixels); {_fmt(params.get('mixed_pixels'))} pixels on material or albedo edges (mixed.png), left out of the "
             f"material fits" + (f"; splits tried: {tried}" if tried else ""))
     return _table("Materials", rows, ["material", "colour in materials.png", "pixels",
                                       *(_SYMBOLS.get(n, n) for n in names)], note)

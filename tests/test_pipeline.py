@@ -527,3 +527,28 @@ def test_a_run_of_several_materials_writes_the_material_map(tmp_path, monkeypatc
     assert sum(m["pixels"] for m in params["materials"]) == int(mask.sum())
     assert params["mixed_pixels"] > 0 and params["material_selection"][0]["kept"] is True
     assert "Materials" in (out / "report.html").read_text()
+
+
+@pytest.mark.slow
+def test_a_textured_object_marks_its_albedo_edges_in_mixed_png(tmp_path):
+    """A checker-textured sphere: the blocks on a texture step are left out of the fits (filled from their
+    neighbours) and written into mixed.png (polarshape.recover.edges); a plain run marks none."""
+    from polarshape.config import load_run_config
+
+    scene = yaml.safe_load(SPHERE.read_text())
+    scene["camera"].update(width=64, height=64, pixel_size_m=4.0e-4)
+    scene["lights"] = scene["lights"][:6]
+    scene["objects"][0]["texture"] = {"kind": "checker", "mapping": "spherical", "cells": 6, "low": 0.25, "high": 1.0}
+    (tmp_path / "small_sphere.yaml").write_text(yaml.safe_dump(scene))
+    seen = {}
+    for edges in (True, False):
+        config_path = _config(tmp_path, input={"type": "simulated", "scene": "small_sphere.yaml", "seed": 3},
+                              recovery={"model": "fmbrdf"}, preprocess={"albedo_edges": edges},
+                              validation={"holdout": "none"}, report={"enabled": False}, mesh={"obj": False})
+        out = run_pipeline(load_run_config(config_path), tmp_path / f"result_{edges}", config_path=config_path).out_dir
+        seen[edges] = (json.loads((out / "params.json").read_text()), read_image(out / "mixed.png") > 0,
+                       read_image(out / "filled.png") > 0, read_image(out / "mask.png") > 0)
+    params, mixed, filled, mask = seen[True]
+    assert params["mixed_pixels"] == int(mixed.sum()) > 0
+    assert bool((mixed <= mask).all()) and bool((mixed <= filled).all())  # left out, hence filled
+    assert seen[False][0]["mixed_pixels"] == 0

@@ -80,7 +80,7 @@ MATERIAL_COLOURS: tuple[tuple[int, int, int], ...] = (
 def write_material_maps(folder: Path, *, materials: np.ndarray, mixed: np.ndarray | None) -> None:
     """``materials.npy`` (H, W) int16 material index (−1 outside the mask), ``materials.png`` (8-bit
     RGB, material m in :data:`MATERIAL_COLOURS` [m], black outside the mask) and ``mixed.png`` (255 on
-    the pixels of a material edge, left out of the material fits)."""
+    the pixels of a material edge, left out of the material fits, or of an albedo edge, left out of every fit)."""
     write_npy(materials.astype(np.int16), folder / "materials.npy")
     palette = np.asarray(MATERIAL_COLOURS, dtype=np.uint8)  # (C, 3)
     rgb = np.where((materials >= 0)[..., None], palette[np.clip(materials, 0, None) % len(palette)], 0)

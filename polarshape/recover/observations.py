@@ -72,6 +72,9 @@ class RecoveryInputs:
         colour: a colour capture's per-channel observations (``stokes`` is then their channel
             mean); None for a mono capture. :func:`crop_inputs` crops it; :func:`downsample_inputs`
             and light subsets leave it out (None).
+        albedo_edges: (H, W) bool blocks on an albedo step (texture), their observations left out of
+            ``valid`` (:mod:`polarshape.recover.edges`); None when not looked for. Cropped like
+            ``mask``; :func:`downsample_inputs` leaves it out.
     """
 
     stokes: Tensor
@@ -86,6 +89,7 @@ class RecoveryInputs:
     offset: tuple[int, int] = (0, 0)
     noise: NoiseModel | None = None
     colour: ColourInputs | None = None
+    albedo_edges: Tensor | None = None
 
     @property
     def num_lights(self) -> int:
@@ -197,6 +201,7 @@ def crop_inputs(inputs: RecoveryInputs, margin: int = 0) -> RecoveryInputs:
         view=inputs.view[r0:r1, c0:c1],
         offset=(inputs.offset[0] + r0, inputs.offset[1] + c0),
         colour=None if inputs.colour is None else inputs.colour.crop(slice(r0, r1), slice(c0, c1)),
+        albedo_edges=None if inputs.albedo_edges is None else inputs.albedo_edges[r0:r1, c0:c1],
     )
 
 

@@ -93,6 +93,7 @@ from polarshape.errors import CaptureError
 from polarshape.io.capture import Capture
 from polarshape.io.polarimetric import capture_polarimetric_calibration
 from polarshape.recover.diagnose import check_observations, check_polarisation_signal
+from polarshape.recover.edges import AlbedoEdges, find_albedo_edges
 from polarshape.recover.hdr import BracketMerger, clipped_counts
 from polarshape.recover.noise import demosaic_variance_factor, estimate_noise, site_redundancy
 from polarshape.recover.observations import ColourInputs, RecoveryInputs
@@ -207,6 +208,7 @@ def preprocess_capture(
     demosaic: str = "bilinear",
     sample_at: str = "centre",
     polarisation_check: bool = True,
+    albedo_edges: bool = True,
 ) -> RecoveryInputs:
     """Convert a capture to recovery tensors (super-pixel demosaicing, frames, validity).
 
@@ -221,6 +223,9 @@ def preprocess_capture(
         demosaic, sample_at: how and where each block's Stokes vector is estimated (module docstring).
         polarisation_check: refuse frames without a polarisation signal (a demosaiced or plain
             image saved as a raw mosaic; :func:`polarshape.recover.diagnose.check_polarisation_signal`).
+        albedo_edges: find albedo steps (texture) from every light (:mod:`polarshape.recover.edges`): the
+            blocks next to one take their own four sites' estimate, the blocks on one are left out
+            (``RecoveryInputs.albedo_edges``); mono captures only.
 
     Returns:
         :class:`RecoveryInputs`.
@@ -325,6 +330,11 @@ def preprocess_capture(
     mixed = _mixed_from_scaled(scaled, ~dark & ~saturated & mask.unsqueeze(0), n_sigma=mixed_sigma)
     del scaled, counts
     valid = ~dark & ~saturated & ~mixed & mask.unsqueeze(0)
+    edges = None
+    if albedo_edges and bayer is None:  # a colour capture's blocks differ in colour under every light: no test
+        edges = find_albedo_edges(block_s0, ~dark & ~saturated & mask.unsqueeze(0))
+        _superpixel_next_to_edges(stokes, edges, mask, frames, capture, polcal, brackets, to_frames, demosaic=demosaic)
+        valid &= ~edges.on_edge.unsqueeze(0)
     if polcal is not None:  # blocks with too few good sites (≥ 2 defects) carry no Stokes vector
         valid &= polcal.valid.unsqueeze(0)
     # σ of s0 from quantisation (1 count / √12 per site, ½Σ of 4 sites) plus a read-noise floor.
@@ -352,6 +362,7 @@ def preprocess_capture(
         noise=noise,
         colour=None if bayer is None else ColourInputs(
             stokes=colour_stokes.to(device), valid=(valid.unsqueeze(1) & ~colour_dark).to(device), bayer=bayer),
+        albedo_edges=None if edges is None else (edges.on_edge & mask).to(device),
     )
     del stokes
     if logger.isEnabledFor(logging.DEBUG):  # (counting 10⁷ observations is not free)
@@ -664,3 +675,28 @@ def _mixed_from_scaled(d: Tensor, usable: Tensor, *, n_sigma: float | None) -> T
         logger.debug("mixed super-pixel observations: %d of %d usable", int(torch.count_nonzero(mixed & usable)),
                      int(torch.count_nonzero(usable)))
     return mixed
+
+
+# --- albedo edges (polarshape.recover.edges) ----------------------------------------------------
+
+
+def _superpixel_next_to_edges(stokes: Tensor, edges: AlbedoEdges, mask: Tensor, frames: np.ndarray, capture: Capture,
+                              polcal: _PolcalApplication | None, brackets: BracketMerger | None,
+                              to_frames: Tensor | None, *, demosaic: str) -> None:
+    """Replace in place the bilinear Stokes (K, 3, H, W) of the ``mask`` blocks next to an albedo step (and not
+    on it) with the block's own four-site estimate: the interpolation from the other side is a false polarisation.
+    The frames are read again only when there is such a block."""
+    swap = edges.adjacent & ~edges.on_edge & mask  # (H, W)
+    if demosaic != "bilinear" or not bool(swap.any()):
+        return
+    for i in range(stokes.shape[0]):
+        if brackets is None:
+            mosaic = counts_to_float(frames[i], capture.bit_depth, capture.spec.camera.black_level, dtype=torch.float64)
+        else:
+            mosaic = brackets.merge(i).radiance
+        s, _ = _stokes_and_sites(mosaic, capture.layout, polcal, demosaic="superpixel", sample_at="centre")
+        if to_frames is not None:
+            s = sensor_plane_stokes(s, basis=to_frames)
+        stokes[i] = torch.where(swap, s, stokes[i])
+    logger.debug("albedo edges: %d blocks next to a step (own-site estimate), %d on one (left out)",
+                 int(swap.sum()), int(edges.on_edge.sum()))
