@@ -323,10 +323,10 @@ def joint_solve(normals: Tensor, obs: Observations, params: FMBRDFParams, *, nam
         k_s, k_b = solve_albedos(st.surf, st.body, obs, per_pixel=per_pixel_albedo, polarised=polarised)
         vals0.update(k_s=float(k_s), k_b=vals0["k_b"] if per_pixel_albedo else float(k_b[0]))
         st = _state(model, vals0, st.n)
+        initial = float(_mean(st.loss_pp, obs))
         cand = _highlight_normals(obs)
         st, _ = _try_highlights(model, st, cand)
         total = float(_mean(st.loss_pp, obs))
-        initial = total
         lam_g = 1e-3
         lam_n = torch.full((p,), 1e-3, dtype=torch.float64, device=dev)
         rel, it = 0.0, 0
