@@ -25,12 +25,20 @@ parts, without a table build.
 Bounds: a global at its bound whose step points outward is held for that step (its coupling
 removed and the system solved again), so the others do not move as if it had.
 
+Highlight candidates: under a narrow lobe a normal off its highlight by more than the lobe's width
+sees no gradient towards it, and the material then widens the lobe to reach it (measured on the 40²
+α 0.03 sphere: 2 of 1052 pixels 18° and 35° off carried all of the loss difference to the truth, and
+dragged α to 0.085, β to its bound 6). So before the first iteration and after every accepted step
+each pixel also tries the half vector of the view and its brightest light (irradiance-relative) and
+keeps it where its loss is lower (:func:`_try_highlights`): one render, no table build.
+
 Acceptance: the trial globals are evaluated with each pixel's old and new normal, and each pixel
 keeps the better (for fixed globals the loss is a sum of per-pixel terms), so a pixel whose
 normal step overshoots does not veto the globals' step; the step is taken when the total loss
 falls, else the globals' λ grows tenfold. Stops when the relative loss change of an accepted
 step is below ``tol`` or no damping finds a descent. The loss never rises, so a fit that adds κ
-to a κ = 0 optimum (:func:`nested_kappa`) can only lower it: a proper nested fit.
+to a κ = 0 optimum (:func:`nested_kappa`, which also tries from the κ = 0 solve's start and keeps
+the lower) can only lower it: a proper nested fit.
 
 Host syncs: per iteration the globals' step (G numbers, the tables are built from them) and the
 total loss (the acceptance and convergence test) come to the host; every per-pixel operation stays
