@@ -25,12 +25,20 @@ parts, without a table build.
 Bounds: a global at its bound whose step points outward is held for that step (its coupling
 removed and the system solved again), so the others do not move as if it had.
 
+Highlight candidates: under a narrow lobe a normal off its highlight by more than the lobe's width
+sees no gradient towards it, and the material then widens the lobe to reach it (measured on the 40²
+α 0.03 sphere: 2 of 1052 pixels 18° and 35° off carried all of the loss difference to the truth, and
+dragged α to 0.085, β to its bound 6). So before the first iteration and after every accepted step
+each pixel also tries the half vector of the view and its brightest light (irradiance-relative) and
+keeps it where its loss is lower (:func:`_try_highlights`): one render, no table build.
+
 Acceptance: the trial globals are evaluated with each pixel's old and new normal, and each pixel
 keeps the better (for fixed globals the loss is a sum of per-pixel terms), so a pixel whose
 normal step overshoots does not veto the globals' step; the step is taken when the total loss
 falls, else the globals' λ grows tenfold. Stops when the relative loss change of an accepted
 step is below ``tol`` or no damping finds a descent. The loss never rises, so a fit that adds κ
-to a κ = 0 optimum (:func:`nested_kappa`) can only lower it: a proper nested fit.
+to a κ = 0 optimum (:func:`nested_kappa`, which also tries from the κ = 0 solve's start and keeps
+the lower) can only lower it: a proper nested fit.
 
 Host syncs: per iteration the globals' step (G numbers, the tables are built from them) and the
 total loss (the acceptance and convergence test) come to the host; every per-pixel operation stays
@@ -83,6 +91,7 @@ class JointResult:
         history: per iteration: loss, relative change, λ of the globals, whether a step was taken, the
             share of pixels whose normal step was kept (``moved``), seconds, parameters.
         seconds: wall time.
+        start_normals, start_params: where the solve started ((P, 3) and the material), for a restart.
     """
 
     params: FMBRDFParams
@@ -95,6 +104,8 @@ class JointResult:
     converged: bool
     history: list[dict] = field(default_factory=list)
     seconds: float = 0.0
+    start_normals: Tensor | None = None
+    start_params: FMBRDFParams | None = None
 
 
 def schur_step(h_nn: Tensor, h_ng: Tensor, h_gg: Tensor, b_n: Tensor, b_g: Tensor, lam_n: Tensor, lam_g: float,
@@ -222,11 +233,37 @@ class _State:
     loss_pp: Tensor  # (P,)
 
 
-def _state(model: _Model, vals: dict[str, float], n: Tensor) -> _State:
-    problem = model.problem(model.tables(vals), vals)
+def _state(model: _Model, vals: dict[str, float], n: Tensor, problem: NormalProblem | None = None) -> _State:
+    """The point (``vals``, ``n``); ``problem``: the tables of ``vals`` when already built."""
+    problem = model.problem(model.tables(vals), vals) if problem is None else problem
     surf, body = render_parts(problem.tables, n, model.obs)
     r, k_b = problem.residual_of_parts(surf, body, model.obs)
     return _State(vals, problem, n, surf, body, r, k_b, problem.loss(r))
+
+
+def _highlight_normals(obs: Observations) -> Tensor:
+    """(P, 3) each pixel's specular candidate: the half vector of the view and the light that makes the
+    pixel brightest relative to its irradiance (the normal that puts that light's mirror direction on the
+    camera). Pixels with no usable observation get their view direction (an always-rejected candidate
+    is harmless: see :func:`_try_highlights`)."""
+    radiance = obs.stokes[..., 0] / obs.irradiance.clamp_min(1e-12)  # (P, K)
+    radiance = torch.where(obs.weight > 0, radiance, torch.full_like(radiance, -math.inf))
+    k = radiance.argmax(-1)  # (P,)
+    light = obs.lights.gather(1, k[:, None, None].expand(-1, 1, 3))[:, 0]  # (P, 3)
+    return unit(light.to(obs.view.dtype) + obs.view)
+
+
+def _try_highlights(model: _Model, st: _State, cand: Tensor) -> tuple[_State, Tensor]:
+    """Each pixel takes its highlight candidate ``cand`` (P, 3) when that lowers its loss under the
+    current globals (a per-pixel move the local steps cannot make: under a narrow lobe a normal off by
+    more than the lobe's width sees no gradient towards the highlight). Returns the state and the
+    (P,) bool of the pixels that moved."""
+    trial = _state(model, st.vals, cand.to(st.n.dtype), st.problem)
+    take = ((trial.n * model.obs.view).sum(-1) > 0) & torch.isfinite(trial.loss_pp) & (trial.loss_pp < st.loss_pp)
+    t1, t3 = take[:, None], take[:, None, None]
+    return _State(st.vals, st.problem, torch.where(t1, trial.n, st.n), torch.where(t3, trial.surf, st.surf),
+                  torch.where(t3, trial.body, st.body), torch.where(t3, trial.r, st.r),
+                  torch.where(take, trial.k_b, st.k_b), torch.where(take, trial.loss_pp, st.loss_pp)), take
 
 
 def _jacobians(model: _Model, st: _State, step_h: float) -> tuple[Tensor, Tensor, Tensor, Tensor]:
@@ -294,8 +331,10 @@ def joint_solve(normals: Tensor, obs: Observations, params: FMBRDFParams, *, nam
         k_s, k_b = solve_albedos(st.surf, st.body, obs, per_pixel=per_pixel_albedo, polarised=polarised)
         vals0.update(k_s=float(k_s), k_b=vals0["k_b"] if per_pixel_albedo else float(k_b[0]))
         st = _state(model, vals0, st.n)
+        initial = float(_mean(st.loss_pp, obs))
+        cand = _highlight_normals(obs)
+        st, _ = _try_highlights(model, st, cand)
         total = float(_mean(st.loss_pp, obs))
-        initial = total
         lam_g = 1e-3
         lam_n = torch.full((p,), 1e-3, dtype=torch.float64, device=dev)
         rel, it = 0.0, 0
@@ -345,6 +384,11 @@ def joint_solve(normals: Tensor, obs: Observations, params: FMBRDFParams, *, nam
                     moved = moved_t
                     lam_g = max(lam_g / 3, 1e-7)
                     lam_n = torch.where(keep_new, (lam_n / 3).clamp_min(1e-7), (lam_n * 4).clamp_max(1e7))
+                    st, jumped = _try_highlights(model, st, cand)
+                    lam_n = torch.where(jumped, torch.full_like(lam_n, 1e-3), lam_n)
+                    total_j = float(_mean(st.loss_pp, obs))
+                    rel = (total - total_j) / max(total, 1e-300) + rel
+                    total = total_j
                     break
                 lam_g = min(lam_g * 10, 1e10)
                 lam_n = torch.where(better, lam_n, (lam_n * 4).clamp_max(1e7))
@@ -359,22 +403,39 @@ def joint_solve(normals: Tensor, obs: Observations, params: FMBRDFParams, *, nam
     if per_pixel_albedo:
         pos = k_b > 0
         out.k_b = float(k_b[pos].median()) if bool(pos.any()) else 0.0
-    return JointResult(out, st.n, k_b, total, initial, it, rel, rel < tol, history, time.perf_counter() - t0)
+    return JointResult(out, st.n, k_b, total, initial, it, rel, rel < tol, history, time.perf_counter() - t0,
+                       unit(normals), replace(params))
 
 
 def nested_kappa(start: JointResult, obs: Observations, **kwargs: object) -> tuple[JointResult, float]:
     """Add κ to a κ = 0 optimum: the joint solve from ``start`` (its normals and material, κ = 0)
     with κ among the fitted names; the loss can only fall from the start (module docstring).
 
+    The κ = 0 optimum need not be a point from which κ can grow: on a κ = 50 matte sphere the κ = 0
+    model explains the body's correlation with a narrow lobe (α at its bound 0.01, β at 6; on the
+    blob α 0.07) and the κ solve from there stays at κ = 0 (gain 0.01 %), while from the κ = 0
+    solve's own start it finds κ 17–24 and 2–6 × lower loss. So the κ solve runs from both
+    (``start.start_normals``, ``start.start_params`` with κ = 0 for the second) and the lower is
+    returned — never above the κ = 0 optimum's loss, so still a nested fit.
+
     Args:
         start: the κ = 0 solve. obs: its observations. kwargs: :func:`joint_solve`'s keywords
             (``names`` gets ``kappa`` added).
 
     Returns:
-        The κ solve and its relative gain (start loss − final loss) / start loss ≥ 0, both losses
-        on the κ solve's tables.
+        The κ solve (its ``initial_loss``: the κ = 0 optimum's, on the κ solve's tables) and its relative
+        gain (κ = 0 optimum's loss − final loss) / κ = 0 optimum's loss ≥ 0.
     """
-    names = tuple(kwargs.pop("names", ())) + ("kappa",)  # type: ignore[arg-type]
+    base = tuple(kwargs.pop("names", ()))  # type: ignore[arg-type]
+    names = base + ("kappa",)
     fit = joint_solve(start.normals, obs, replace(start.params, kappa=0.0), names=names, **kwargs)  # type: ignore[arg-type]
-    gain = (fit.initial_loss - fit.loss) / max(fit.initial_loss, 1e-300)
-    return fit, gain
+    ref = fit.initial_loss  # the κ = 0 optimum on these tables
+    if start.start_normals is not None and start.start_params is not None:
+        fresh = joint_solve(start.start_normals, obs, replace(start.start_params, kappa=0.0), names=names,
+                            **kwargs)  # type: ignore[arg-type]
+        logger.info("nested κ: from the κ = 0 optimum loss %.6g (κ %.3g), from its start %.6g (κ %.3g)", fit.loss,
+                    fit.params.kappa, fresh.loss, fresh.params.kappa)
+        if fresh.loss < fit.loss:
+            fit = replace(fresh, initial_loss=ref)
+    gain = (ref - fit.loss) / max(ref, 1e-300)
+    return fit, max(gain, 0.0)
