@@ -293,6 +293,12 @@ def _quiet(log: logging.Logger) -> Iterator[None]:
         log.setLevel(level)
 
 
+def _equivalent_irradiance(body: Tensor, cos: Tensor, min_cos: float) -> Tensor:
+    """Ẽ = B / max(N·L, ``min_cos``) (K, P) of the body term B and N·L (K, P); 0 where N·L ≤ 0
+    (:class:`ModelShading`)."""
+    return torch.where(cos > 0, body / cos.clamp_min(min_cos), torch.zeros_like(body))
+
+
 @dataclass(frozen=True)
 class ModelShading:
     """The run's fitted FMBRDF, to take its non-Lambertian part out of the shading during the depth search.
@@ -359,9 +365,7 @@ class ModelShading:
         ``pixels`` (H, W) bool (``view`` (P, 3)): (shading s0 − k_s S, equivalent irradiance Ẽ = B / max(N·L,
         ``min_cos``), 0 where N·L ≤ 0), each (K, P), to fit as ``shading ≈ Ẽ (b·L)``."""
         surf, body, cos, _ = self._terms(lights, irradiance, view, pixels)
-        equivalent = torch.where(cos > 0, body / cos.clamp_min(min_cos), torch.zeros_like(body))
-        return s0 - self.k_s * surf, equivalent
-
+        return s0 - self.k_s * surf, _equivalent_irradiance(body, cos, min_cos)
 
     def at(self, inputs: RecoveryInputs) -> ModelShading:
         """This model with k_s re-fitted (:meth:`profiled`) to the inputs' s0 at their L and E over the mask's
@@ -382,7 +386,7 @@ class ModelShading:
         candidate placement — held at the value fitted at another placement, it biases the search (a blob whose
         material was fitted 4.6 % too near: 1.6 % too near, against 0.5 % far with k_s re-fitted)."""
         surf, body, cos, _ = self._terms(lights, irradiance, view, pixels)
-        equivalent = torch.where(cos > 0, body / cos.clamp_min(0.1), torch.zeros_like(body))
+        equivalent = _equivalent_irradiance(body, cos, 0.1)
         w = obs.to(s0)
         design = (equivalent * w).unsqueeze(-1) * lights  # (K, P, 3)
         design = design.transpose(0, 1)  # (P, K, 3)

@@ -63,6 +63,17 @@ def _gather(x: Tensor, ys: Tensor, xs: Tensor) -> tuple[Tensor, Tensor]:
     return x[:, ys.clamp(0, h - 1), xs.clamp(0, w - 1)], inside
 
 
+def _step_sign(q: Tensor, usable: Tensor, threshold: float) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Log-ratios q (K, *) over the ``usable`` lights: (*) bool a rising step (the largest at least
+    ``threshold``, none falling beyond a tenth of it), a falling one, and the largest and smallest q."""
+    inf = torch.tensor(math.inf, dtype=q.dtype, device=q.device)
+    q_max = torch.where(usable, q, -inf).amax(0)
+    q_min = torch.where(usable, q, inf).amin(0)
+    up = (q_max >= threshold) & (q_min >= -0.1 * q_max)
+    down = (q_min <= -threshold) & (q_max <= -0.1 * q_min)
+    return up, down, q_max, q_min
+
+
 def _candidates(log_s0: Tensor, usable: Tensor, oy: int, ox: int, threshold: float) -> tuple[Tensor, Tensor]:
     """Blocks a whose log-ratio to a + (oy, ox) may be one albedo step (the cheap necessary part of
     :func:`_consistent_step`, over the whole grid): their rows and columns (N,) each."""
@@ -71,12 +82,7 @@ def _candidates(log_s0: Tensor, usable: Tensor, oy: int, ox: int, threshold: flo
     a = (slice(None), slice(0, h - oy), slice(c0, c1))
     b = (slice(None), slice(oy, h), slice(c0 + ox, c1 + ox))
     q = log_s0[b] - log_s0[a]  # (K, H − oy, W − |ox|)
-    both = usable[a] & usable[b]
-    inf = torch.tensor(math.inf, dtype=q.dtype, device=q.device)
-    q_max = torch.where(both, q, -inf).amax(0)
-    q_min = torch.where(both, q, inf).amin(0)
-    up = (q_max >= threshold) & (q_min >= -0.1 * q_max)
-    down = (q_min <= -threshold) & (q_max <= -0.1 * q_min)
+    up, down, _, _ = _step_sign(q, usable[a] & usable[b], threshold)
     ys, xs = torch.nonzero(up | down, as_tuple=True)
     return ys, xs + c0
 
@@ -93,11 +99,7 @@ def _consistent_step(q: Tensor, usable: Tensor, threshold: float, max_spread: fl
     Returns:
         ok (N,) bool; clear (K, N) bool lights that see it.
     """
-    inf = torch.tensor(math.inf, dtype=q.dtype, device=q.device)
-    q_max = torch.where(usable, q, -inf).amax(0)
-    q_min = torch.where(usable, q, inf).amin(0)
-    up = (q_max >= threshold) & (q_min >= -0.1 * q_max)
-    down = (q_min <= -threshold) & (q_max <= -0.1 * q_min)
+    up, down, q_max, q_min = _step_sign(q, usable, threshold)
     sign = up.to(q.dtype) - down.to(q.dtype)  # (N,)
     top = torch.where(up, q_max, -q_min)
     clear = usable & (sign * q >= (1 - max_spread) * top) & (up | down)

@@ -328,19 +328,18 @@ class _Trial:
     materials: list[FMBRDFParams]
     early_sizes: list[int]
     early_gain: float
-    early_held_gain: float = math.nan
     labels: Tensor | None = None
     energy: float = math.nan
     costs: Tensor | None = None
     normals: Tensor | None = None
 
 
-def _split(grid: _Grid, materials: list[FMBRDFParams], labels: Tensor, costs: Tensor, normals: Tensor, target: int,
-           early: bool, halves: list[Tensor] | None) -> _Trial:
-    """Material ``target`` split in two (module docstring, step 2); ``normals`` (M, P, 3): each
-    current material's. ``early``: stop after the early test when the two start lobes, at the held
+def _split(grid: _Grid, materials: list[FMBRDFParams], labels: Tensor, costs: Tensor, target: int, early: bool
+           ) -> _Trial:
+    """Material ``target`` split in two (module docstring, step 2); ``costs`` (M, h, w): the current
+    materials'. ``early``: stop after the early test when the two start lobes, at the held
     normals, leave a part below :data:`MIN_PART_FRACTION` of the pixels (``labels`` then None).
-    The early test's in-sample and (with ``halves``) held-out gains are recorded, not used."""
+    The early test's in-sample gain is recorded, not used."""
     sel = labels[grid.pixels] == target
     narrow, wide, start_loss = _start_pair(grid, materials[target], sel)
     trial = [*materials[:target], narrow, *materials[target + 1:], wide]
@@ -355,19 +354,6 @@ def _split(grid: _Grid, materials: list[FMBRDFParams], labels: Tensor, costs: Te
     early_sizes = [int((lab0 == 0).sum()), int((lab0 == 1).sum())]
     early_gain = float(costs[target][region].sum()) - _energy(start, lab0, region)
     out = _Trial(trial, early_sizes, early_gain)
-    if halves is not None:
-        n_sel, obs_sel = normals[target][sel], grid.obs.select(sel)
-        per_half, base = [], []
-        for keep in halves:
-            o = replace(obs_sel, weight=obs_sel.weight * keep.to(obs_sel.weight.dtype))
-            c = torch.full_like(start, math.inf)
-            c[:, region] = pixel_losses([narrow, wide], n_sel, o, per_pixel_albedo=grid.per_pixel,
-                                        polarised=grid.polarised, delta=grid.delta, cache=grid.tables,
-                                        n_grid=START_TABLE_GRID)
-            per_half.append(c)
-            base.append(float(pixel_losses([materials[target]], n_sel, o, per_pixel_albedo=grid.per_pixel,
-                                           polarised=grid.polarised, delta=grid.delta, cache=grid.tables).sum()))
-        out.early_held_gain = 1.0 - _cross_scored(per_half, region) / max(sum(base), 1e-30)
     if early and min(early_sizes) < smallest:
         return out
     lab = None
@@ -446,10 +432,9 @@ def _select(grid: _Grid, first: FMBRDFParams, wanted: int | None, log: SolveLog
         own = costs.gather(0, labels.clamp_min(0).unsqueeze(0))[0]  # (h, w) each pixel's NLL
         share = [float(own[(labels == m) & grid.pixels].sum()) for m in range(len(materials))]
         target = max(range(len(materials)), key=lambda m: share[m])
-        t = _split(grid, materials, labels, costs, normals, target, early=wanted is None, halves=halves)
+        t = _split(grid, materials, labels, costs, target, early=wanted is None)
         record: dict = {"materials": len(t.materials), "split": target, "energy": energy, "penalty": penalty,
                         "early_sizes": t.early_sizes, "early_relative_gain": t.early_gain / max(energy, 1e-30),
-                        "early_held_out_gain": t.early_held_gain,
                         "alpha": [m.alpha for m in t.materials], "ior": [m.ior for m in t.materials]}
         if t.labels is None:  # refused by the early test
             record.update(kept=False, decided="early")
