@@ -32,7 +32,7 @@ plane of N and V where the exit transmission dominates (spec §5, §7).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -42,15 +42,18 @@ from polarshape.brdf.distribution import d_shape
 from polarshape.brdf.fresnel import fresnel
 from polarshape.brdf.geometry import (
     ShadingGeometry,
-    dot,
-    double_angle,
+    Vec3,
+    cross3,
+    dot3,
+    double_angle_of,
     rotate_linear_stokes,
     safe_atan2,
-    safe_normalize,
+    safe_normalize3,
     shading_geometry,
     tiny,
 )
 from polarshape.brdf.quadrature import ThetaWarp, gauss_legendre, theta_cutoff, theta_rule
+from polarshape.brdf.smith import interp_uniform
 
 
 @dataclass(frozen=True)
@@ -72,6 +75,9 @@ class BodyTable:
     values: Tensor
     warp: ThetaWarp
     n_modes: int
+    #: per-dtype lookup tables derived from ``values`` (:func:`body_parts`), kept while ``values``
+    #: carries no autograd history (then they are constants of the material)
+    cache: dict = field(default_factory=dict, compare=False, repr=False)
 
 
 def arc_nodes(theta: np.ndarray, theta_w: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -282,6 +288,45 @@ def build_body_table(
     return BodyTable(values=values.contiguous(), warp=warp, n_modes=n_modes)
 
 
+def _corner(x: Tensor, size: int) -> tuple[Tensor, Tensor]:
+    """Lower grid index (long) and fraction of fractional indices x (...) along an axis of ``size``
+    (clamped to the axis; the last cell takes x = size − 1)."""
+    xc = x.clamp(0.0, size - 1.0)
+    x0 = xc.detach().floor().clamp(max=max(size - 2, 0))
+    return x0.long(), xc - x0
+
+
+def _trilinear_flat(channels: tuple[Tensor, ...], sizes: tuple[int, int, int], i: Tensor, j: Tensor, k: Tensor) -> list[Tensor]:
+    """Trilinear interpolation of a table stored as one flat (A·B·C,) tensor per channel.
+
+    The eight corners of every sample are gathered with one ``index_select`` per channel and
+    combined by three ``lerp`` calls over (2, 2, 2, ...) blocks (contiguous along the samples).
+
+    Args:
+        channels: K tensors (A·B·C,), row-major over (A, B, C).
+        sizes: (A, B, C).
+        i, j, k: broadcastable (...) fractional indices along A, B, C (clamped to the table).
+
+    Returns:
+        K tensors (...) (the broadcast shape), differentiable in the indices and the table.
+    """
+    a, b, c = sizes
+    (i0, fi), (j0, fj), (k0, fk) = _corner(i, a), _corner(j, b), _corner(k, c)
+    base = (i0 * b + j0) * c + k0
+    shape = base.shape
+    si, sj, sk = (b * c if a > 1 else 0), (c if b > 1 else 0), (1 if c > 1 else 0)
+    offsets = torch.tensor([di * si + dj * sj + dk * sk for di in (0, 1) for dj in (0, 1) for dk in (0, 1)],
+                           device=base.device).reshape(8, *([1] * base.dim()))
+    idx = (base.unsqueeze(0) + offsets).reshape(-1)  # (8·N,)
+    out = []
+    for ch in channels:
+        g = ch.index_select(0, idx).reshape(2, 2, 2, *shape)  # (di, dj, dk, ...)
+        g = torch.lerp(g[:, :, 0], g[:, :, 1], fk)  # along Δφ
+        g = torch.lerp(g[:, 0], g[:, 1], fj)  # along θ_L
+        out.append(torch.lerp(g[0], g[1], fi))  # along θ_V
+    return out
+
+
 def trilinear(table: Tensor, i: Tensor, j: Tensor, k: Tensor) -> Tensor:
     """Trilinear interpolation of a channels-last table at fractional indices.
 
@@ -290,48 +335,111 @@ def trilinear(table: Tensor, i: Tensor, j: Tensor, k: Tensor) -> Tensor:
         i, j, k: (...) fractional indices along A, B, C (clamped to the table).
 
     Returns:
-        (..., K), differentiable in the indices and the table. (Eight row gathers of K values:
-        about twice as fast on CPU as ``grid_sample`` on the channels-first layout.)
+        (..., K), differentiable in the indices and the table (eight gathers per channel: about
+        twice as fast on CPU as ``grid_sample`` on the channels-first layout).
     """
     a, b, c, n_ch = table.shape
-    flat = table.reshape(-1, n_ch)
-    shape = i.shape
-    i, j, k = (x.reshape(-1) for x in (i, j, k))
-    idx, frac = [], []
-    for x, size in ((i, a), (j, b), (k, c)):
-        xc = x.clamp(0.0, size - 1.0)
-        x0 = xc.detach().floor().clamp(max=max(size - 2, 0))
-        idx.append(x0.long())
-        frac.append((xc - x0).unsqueeze(-1))
-    base = (idx[0] * b + idx[1]) * c + idx[2]
-    si, sj, sk = (b * c if a > 1 else 0), (c if b > 1 else 0), (1 if c > 1 else 0)
-
-    def at(offset: int) -> Tensor:
-        return flat.index_select(0, base + offset)
-
-    fi, fj, fk = frac
-    c00 = torch.lerp(at(0), at(sk), fk)
-    c01 = torch.lerp(at(sj), at(sj + sk), fk)
-    c10 = torch.lerp(at(si), at(si + sk), fk)
-    c11 = torch.lerp(at(si + sj), at(si + sj + sk), fk)
-    out = torch.lerp(torch.lerp(c00, c01, fj), torch.lerp(c10, c11, fj), fi)
-    return out.reshape(*shape, n_ch)
+    flat = table.reshape(-1, n_ch).t()
+    i, j, k = torch.broadcast_tensors(i, j, k)
+    return torch.stack(_trilinear_flat(tuple(flat.contiguous()), (a, b, c), i, j, k), dim=-1)
 
 
-def azimuth_frame(normal: Tensor, view: Tensor, light: Tensor, e_x: Tensor) -> tuple[Tensor, Tensor]:
-    """Tangent frame (x_ref, y_ref = N × x_ref) with x_ref toward V's azimuth about N.
+def _lookup(table: BodyTable, dtype: torch.dtype) -> tuple[Tensor, ...]:
+    """The tables :func:`body_parts` interpolates, in ``dtype`` (cached on ``table`` when its values
+    carry no autograd history).
 
-    When V ∥ N the azimuth of L is used instead, and when both are ∥ N any tangent (from e_x):
-    the tabulated quantities do not depend on the choice there. Shapes (..., 3).
+    Separable (``n_modes`` = 1, κ = 0): W does not depend on Δφ, WU = 0 and W = J/(P(V) P(L)) is a
+    product of a function of θ_V and one of θ_L (module docstring: k_m = 1, so A_0 = H_0(θ_V) G_0(θ_L)ᵀ;
+    WQ/W0 = H_1/H_0 depends on θ_V alone), so log W0[i, j] = log W0[i, 0] + (log W0[0, j] − log W0[0, 0])
+    and bilinear interpolation of that sum is the sum of two linear ones: returns (G,) tables
+    (log W0[·, 0], log W0[0, ·] − log W0[0, 0], WQ/W0[·, 0]).
+    Otherwise: the three channels (log W0, WQ/W0, WU/W0), each flat (G·G·F,).
     """
-    eps2 = 1e-12 if normal.dtype == torch.float64 else 1e-8
-    v_t = view - dot(normal, view).unsqueeze(-1) * normal
-    l_t = light - dot(normal, light).unsqueeze(-1) * normal
-    f_t = e_x - dot(normal, e_x).unsqueeze(-1) * normal
-    use_v = (dot(v_t, v_t) > eps2).unsqueeze(-1)
-    use_l = (dot(l_t, l_t) > eps2).unsqueeze(-1)
-    x_ref = safe_normalize(torch.where(use_v, v_t, torch.where(use_l, l_t, f_t)))
-    return x_ref, torch.linalg.cross(normal, x_ref, dim=-1)
+    cacheable = not table.values.requires_grad
+    if cacheable and dtype in table.cache:
+        return table.cache[dtype]
+    v = table.values
+    if table.n_modes == 1:
+        out = (v[:, 0, 0, 0], v[0, :, 0, 0] - v[0, 0, 0, 0], v[:, 0, 0, 1])
+    else:
+        out = tuple(v.reshape(-1, v.shape[-1]).t())
+    out = tuple(t.to(dtype).contiguous() for t in out)
+    if cacheable:
+        table.cache[dtype] = out
+    return out
+
+
+def _any_on_host(mask: Tensor) -> bool:
+    """Whether any element of ``mask`` is nonzero, answered on CPU only: True on other devices (no
+    host synchronisation; callers then take the general path, which gives the same values)."""
+    return mask.device.type != "cpu" or bool(mask.any())
+
+
+def body_parts(table: BodyTable, geo: ShadingGeometry, *, scale: Tensor | float) -> Vec3:
+    """Body-reflection Stokes (s0, s1, s2) (spec §7) of a :class:`ShadingGeometry` from a :class:`BodyTable`.
+
+    W(θ_V, θ_L, Δφ) is interpolated with Δφ the azimuth of L about N from x_ref, the tangent
+    direction toward V (toward L where V ∥ N, and any tangent, from e_x, when both are: the
+    tabulated quantities do not depend on the choice there). The table's polarisation frame
+    e'_x = sin θ_V N − cos θ_V x_ref (= normalise(N − (N·V)V)) is rotated into the pixel frame.
+    Where V is not ∥ N, x_ref and the rotation depend on N and V alone and are computed at their
+    (per-pixel) shape; with κ = 0 the lookup is two 1-D interpolations (:func:`_lookup`).
+
+    Args:
+        table: built by :func:`build_body_table` for the material.
+        geo: :func:`~polarshape.brdf.geometry.shading_geometry` of unit N, L, V.
+        scale: k_b times the irradiance (broadcastable to (...)).
+
+    Returns:
+        (s0, s1, s2), each (...), for unit irradiance times ``scale``; zero unless N·L > 0 and N·V > 0.
+    """
+    n, l, v, e_x, e_y = geo.normal, geo.light, geo.view, geo.e_x, geo.e_y
+    dt = geo.n_dot_l.dtype
+    eps2 = 1e-12 if dt == torch.float64 else 1e-8
+    # per pixel: x_p toward V's azimuth (from e_x where V ∥ N), y_p = N × x_p
+    v_t = tuple(torch.addcmul(v[c], geo.n_dot_v, n[c], value=-1.0) for c in range(3))
+    n_dot_ex = dot3(n, e_x)
+    f_t = tuple(torch.addcmul(e_x[c], n_dot_ex, n[c], value=-1.0) for c in range(3))
+    use_v = (dot3(v_t, v_t) > eps2).to(dt)
+    x_p = safe_normalize3(tuple(v_t[c] * use_v + f_t[c] * (1.0 - use_v) for c in range(3)))
+    y_p = cross3(n, x_p)
+    lx, ly = dot3(l, x_p), dot3(l, y_p)  # L in the tangent frame
+    # where V ∥ N and L is not, x_ref = normalise(L − (N·L)N) = (lx x_p + ly y_p)/r: (cos γ, sin γ) = (lx, ly)/r
+    fallback = _any_on_host(1.0 - use_v)
+    if fallback:
+        r2 = lx * lx + ly * ly
+        fb = (1.0 - use_v) * (r2 > eps2).to(dt)  # 1 where x_ref is L's azimuth
+        rinv = fb / torch.sqrt(r2.clamp_min(tiny(dt) ** 2))
+        cos_g, sin_g = (1.0 - fb) + lx * rinv, ly * rinv
+    # e'_x = sin θ_V N − cos θ_V x_ref projected on e_x, e_y; x_ref = cos γ x_p + sin γ y_p
+    sin_v, cos_v = torch.sin(geo.theta_v), torch.cos(geo.theta_v)
+    a0, b0 = sin_v * n_dot_ex, sin_v * dot3(n, e_y)
+    ax, bx = cos_v * dot3(x_p, e_x), cos_v * dot3(x_p, e_y)
+    if fallback:
+        ay, by = cos_v * dot3(y_p, e_x), cos_v * dot3(y_p, e_y)
+        cos2chi, sin2chi = double_angle_of(a0 - torch.addcmul(cos_g * ax, sin_g, ay), b0 - torch.addcmul(cos_g * bx, sin_g, by))
+    else:
+        cos2chi, sin2chi = double_angle_of(a0 - ax, b0 - bx)
+
+    g = table.values.shape[0]
+    i = (table.warp.to_grid(geo.theta_v) + 1.0) * (0.5 * (g - 1))
+    j = (table.warp.to_grid(geo.theta_l) + 1.0) * (0.5 * (g - 1))
+    k = torch.as_tensor(scale, dtype=dt, device=geo.n_dot_l.device) * geo.view_mask
+    factor = (k / math.pi) * geo.n_dot_l.clamp_min(0.0)  # (k_b/π) [N·L]₊ (spec §7 with G1 = cos θ/P)
+    if table.n_modes == 1:  # separable (κ = 0): log W0 = A(θ_V) + B(θ_L), WQ/W0 = Q(θ_V), WU = 0
+        a_tab, b_tab, q_tab = _lookup(table, dt)
+        s0 = factor * torch.exp(interp_uniform(i, a_tab) + interp_uniform(j, b_tab))
+        q = interp_uniform(i, q_tab)
+        return s0, s0 * (q * cos2chi), s0 * (q * sin2chi)
+    dphi = safe_atan2(ly, lx)
+    if fallback:
+        dphi = dphi * (1.0 - fb)  # Δφ = 0 where x_ref is L's azimuth
+    f = table.values.shape[2]
+    w_log, w_q, w_u = _trilinear_flat(_lookup(table, dt), tuple(table.values.shape[:3]), i, j, dphi.abs() * ((f - 1) / math.pi))
+    s0 = factor * torch.exp(w_log)
+    wu = w_u * (1.0 - 2.0 * (dphi < 0).to(dt))  # WU is odd in Δφ
+    s1, s2 = rotate_linear_stokes(s0 * w_q, s0 * wu, cos2chi, sin2chi)
+    return s0, s1, s2
 
 
 def body_stokes_fast(
@@ -343,7 +451,7 @@ def body_stokes_fast(
     k_b: Tensor | float,
     geometry: ShadingGeometry | None = None,
 ) -> Tensor:
-    """Body-reflection Stokes vector (spec §7) from a :class:`BodyTable`.
+    """Body-reflection Stokes vector (spec §7) from a :class:`BodyTable` (:func:`body_parts` stacked).
 
     Args:
         table: built by :func:`build_body_table` for the material.
@@ -354,27 +462,5 @@ def body_stokes_fast(
     Returns:
         (..., 3) Stokes (s0, s1, s2) for unit irradiance; zero unless N·L > 0 and N·V > 0.
     """
-    normal, light, view = torch.broadcast_tensors(normal, light, view)
-    dt = normal.dtype
     geo = shading_geometry(normal, light, view) if geometry is None else geometry
-    e_x, e_y, cos_l, front, theta_l, theta_v = geo.e_x, geo.e_y, geo.n_dot_l, geo.front, geo.theta_l, geo.theta_v
-    x_ref, y_ref = azimuth_frame(normal, view, light, e_x)
-    dphi = safe_atan2(dot(light, y_ref), dot(light, x_ref))
-
-    g, f = table.values.shape[0], table.values.shape[2]
-    w = trilinear(
-        table.values.to(dt),  # (G_V, G_L, F, 3)
-        (table.warp.to_grid(theta_v) + 1.0) * (0.5 * (g - 1)),
-        (table.warp.to_grid(theta_l) + 1.0) * (0.5 * (g - 1)),
-        dphi.abs() * ((f - 1) / math.pi),
-    )  # (..., 3)
-    w0 = torch.exp(w[..., 0])
-    wq, wu = w0 * w[..., 1], w0 * w[..., 2] * torch.where(dphi < 0, -1.0, 1.0).to(dt)
-
-    # local polarisation frame e'_x = sin θ_V N − cos θ_V x_ref (= normalise(N − (N·V)V))
-    e_xl = torch.sin(theta_v).unsqueeze(-1) * normal - torch.cos(theta_v).unsqueeze(-1) * x_ref
-    cos2chi, sin2chi = double_angle(e_xl, e_x, e_y)
-    s1, s2 = rotate_linear_stokes(wq, wu, cos2chi, sin2chi)
-    kb = torch.as_tensor(k_b, dtype=dt, device=normal.device)
-    out = ((kb / math.pi) * cos_l.clamp_min(0.0)).unsqueeze(-1) * torch.stack([w0, s1, s2], dim=-1)
-    return torch.where(front.unsqueeze(-1), out, torch.zeros_like(out))
+    return torch.stack(torch.broadcast_tensors(*body_parts(table, geo, scale=k_b)), dim=-1)

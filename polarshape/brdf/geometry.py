@@ -18,23 +18,59 @@ import torch
 from torch import Tensor
 
 
+#: A vector as its three components (x, y, z), each a tensor; the components broadcast together.
+#: The evaluators work on components: contiguous per-component tensors vectorise where (..., 3)
+#: slices are strided, and quantities of one pixel (N, V) keep their own shape while those of a
+#: pixel·light (L) carry the light dimension.
+Vec3 = tuple[Tensor, Tensor, Tensor]
+
+
 def tiny(dtype: torch.dtype) -> float:
     """A positive floor far below any physical value but safe to square in ``dtype``."""
     return 1e-30 if dtype == torch.float64 else 1e-18
 
 
-def dot(a: Tensor, b: Tensor) -> Tensor:
-    """Dot product over the last dimension: (..., 3), (..., 3) -> (...).
+def components(x: Tensor) -> Vec3:
+    """(..., 3) -> its three components, each (...) (views, no copy)."""
+    return x.unbind(-1)  # type: ignore[return-value]
 
-    Written per component: a reduction over a trailing dimension of size 3 is several times slower
-    in torch than three fused multiply-adds."""
-    return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
+
+def dot3(a: Vec3, b: Vec3) -> Tensor:
+    """a · b of component triples: (...) each -> (...) (a reduction over a trailing dimension of
+    size 3 is several times slower in torch). Plain products and sums, not fused multiply-adds: N·L
+    near the terminator is a cancelling sum whose rounding the result is proportional to."""
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+def cross3(a: Vec3, b: Vec3) -> Vec3:
+    """a × b of component triples (explicit: ``linalg.cross`` on (..., 3) is several times slower)."""
+    return (
+        torch.addcmul(a[1] * b[2], a[2], b[1], value=-1.0),
+        torch.addcmul(a[2] * b[0], a[0], b[2], value=-1.0),
+        torch.addcmul(a[0] * b[1], a[1], b[0], value=-1.0),
+    )
+
+
+def safe_norm3(x: Vec3) -> Tensor:
+    """|x| of a component triple with a finite gradient at 0: (...)."""
+    eps = tiny(x[0].dtype)
+    return torch.sqrt(dot3(x, x).clamp_min(eps * eps))
+
+
+def safe_normalize3(x: Vec3) -> Vec3:
+    """x / |x| of a component triple; a zero vector stays (numerically) zero."""
+    n = safe_norm3(x)
+    return (x[0] / n, x[1] / n, x[2] / n)
+
+
+def dot(a: Tensor, b: Tensor) -> Tensor:
+    """Dot product over the last dimension: (..., 3), (..., 3) -> (...) (see :func:`dot3`)."""
+    return dot3(components(a), components(b))
 
 
 def safe_norm(x: Tensor) -> Tensor:
     """Euclidean norm over the last dimension with a finite gradient at 0: (..., 3) -> (...)."""
-    eps = tiny(x.dtype)
-    return torch.sqrt(dot(x, x).clamp_min(eps * eps))
+    return safe_norm3(components(x))
 
 
 def safe_normalize(x: Tensor) -> Tensor:
@@ -42,17 +78,28 @@ def safe_normalize(x: Tensor) -> Tensor:
     return x / safe_norm(x).unsqueeze(-1)
 
 
+def angle_from(cross: Vec3, cos_part: Tensor) -> Tensor:
+    """The angle atan2(|a × b|, a · b) in [0, π] from a × b (components) and a · b (spec §7, "Numerics").
+
+    Both arguments may carry a common positive factor (it cancels in atan2): e.g. the angle of N and
+    H = (L + V)/|L + V| is that of N and L + V."""
+    return torch.atan2(safe_norm3(cross), cos_part)
+
+
 def angle_between(a: Tensor, b: Tensor) -> Tensor:
     """Angle in [0, π] between ``a`` and ``b`` (any lengths) as atan2(|a×b|, a·b): (...)."""
-    a, b = torch.broadcast_tensors(a, b)
-    return torch.atan2(safe_norm(torch.linalg.cross(a, b, dim=-1)), dot(a, b))
+    ca, cb = components(a), components(b)
+    return angle_from(cross3(ca, cb), dot3(ca, cb))
 
 
 def safe_atan2(y: Tensor, x: Tensor) -> Tensor:
-    """``atan2(y, x)`` whose gradient is finite (zero) at the origin."""
+    """``atan2(y, x)`` whose gradient is finite (zero) at the origin.
+
+    At the origin y is replaced by 0 and x by 1 (atan2 = 0, zero gradient); written with a 0/1
+    mask, not ``torch.where`` (several times slower on CPU)."""
     eps = tiny(y.dtype)
-    at_origin = (x * x + y * y) <= eps * eps
-    return torch.atan2(torch.where(at_origin, torch.zeros_like(y), y), torch.where(at_origin, torch.ones_like(x), x))
+    at_origin = ((x * x + y * y) <= eps * eps).to(y.dtype)
+    return torch.atan2(y * (1.0 - at_origin), x + at_origin)
 
 
 def tangent_basis(n: Tensor) -> tuple[Tensor, Tensor]:
@@ -66,6 +113,14 @@ def tangent_basis(n: Tensor) -> tuple[Tensor, Tensor]:
     return t1, t2
 
 
+def stokes_frame3(view: Vec3) -> tuple[Vec3, Vec3]:
+    """:func:`stokes_frame` of components: (e_x, e_y) as component triples of V's shape."""
+    d = (-view[0], -view[1], -view[2])
+    # x̂ − (x̂·d) d
+    e_x = safe_normalize3((1.0 - d[0] * d[0], -(d[0] * d[1]), -(d[0] * d[2])))
+    return e_x, cross3(d, e_x)
+
+
 def stokes_frame(view: Tensor) -> tuple[Tensor, Tensor]:
     """The pixel's Stokes frame of spec §1.
 
@@ -76,24 +131,23 @@ def stokes_frame(view: Tensor) -> tuple[Tensor, Tensor]:
         ``(e_x, e_y)``, each (..., 3): with the ray d = −V, e_x = normalise(x̂ − (x̂·d) d) and
         e_y = d × e_x. Orthographic (V = (0, 0, −1)): e_x = x̂, e_y = ŷ (image down).
     """
-    d = -view
-    x_hat = torch.zeros_like(d)
-    x_hat[..., 0] = 1.0
-    e_x = safe_normalize(x_hat - dot(x_hat, d).unsqueeze(-1) * d)
-    e_y = torch.linalg.cross(d, e_x, dim=-1)
-    return e_x, e_y
+    e_x, e_y = stokes_frame3(components(view))
+    return torch.stack(e_x, -1), torch.stack(e_y, -1)
+
+
+def double_angle_of(a: Tensor, b: Tensor) -> tuple[Tensor, Tensor]:
+    """cos 2ψ and sin 2ψ of ψ = atan2(b, a), algebraically ((a²−b²)/(a²+b²), 2ab/(a²+b²)); both 0
+    at the origin (then the Fresnel factor they multiply vanishes too). A common positive factor of
+    a and b cancels. Shapes (...) -> (...), (...)."""
+    a2, b2 = a * a, b * b
+    r2 = (a2 + b2).clamp_min(tiny(a.dtype))
+    return (a2 - b2) / r2, 2.0 * a * b / r2
 
 
 def double_angle(vec: Tensor, e_x: Tensor, e_y: Tensor) -> tuple[Tensor, Tensor]:
-    """cos 2ψ and sin 2ψ of ψ = atan2(vec·e_y, vec·e_x), the angle of ``vec`` projected into a frame.
-
-    Computed algebraically ((a²−b²)/(a²+b²), 2ab/(a²+b²)); both are 0 when the projection
-    vanishes (then the Fresnel factor they multiply vanishes too). Shapes (..., 3) -> (...), (...).
-    """
-    a = dot(vec, e_x)
-    b = dot(vec, e_y)
-    r2 = (a * a + b * b).clamp_min(tiny(a.dtype))
-    return (a * a - b * b) / r2, 2.0 * a * b / r2
+    """cos 2ψ and sin 2ψ of ψ = atan2(vec·e_y, vec·e_x), the angle of ``vec`` projected into a frame
+    (:func:`double_angle_of`). Shapes (..., 3) -> (...), (...)."""
+    return double_angle_of(dot(vec, e_x), dot(vec, e_y))
 
 
 def rotate_linear_stokes(q: Tensor, u: Tensor, cos2chi: Tensor, sin2chi: Tensor) -> tuple[Tensor, Tensor]:
@@ -105,33 +159,68 @@ def rotate_linear_stokes(q: Tensor, u: Tensor, cos2chi: Tensor, sin2chi: Tensor)
 class ShadingGeometry(NamedTuple):
     """What the surface and body terms both need of a (N, L, V) configuration, computed once.
 
-    Attributes (each (...)): n_dot_l, n_dot_v (cosines), theta_l, theta_v (polar angles from N in
-    [0, π/2], via atan2), front (N·L > 0 and N·V > 0); e_x, e_y (..., 3): the pixel Stokes frame.
+    Every field broadcasts to the evaluation shape (...) but keeps the shape it was computed at:
+    quantities of N and V alone (n_dot_v, theta_v, n_cross_v, e_x, e_y) stay per pixel when N and V
+    are given per pixel, so they are computed once per pixel, not once per pixel·light.
+
+    Attributes:
+        normal, light, view: N, L, V as component triples (:data:`Vec3`).
+        n_dot_l, n_dot_v: cosines; theta_l, theta_v: polar angles from N in [0, π/2] (via atan2).
+        n_cross_l, n_cross_v: N × L and N × V (component triples; θ_H of the surface term is the
+            angle of N and L + V, whose cross product with N is their sum).
+        e_x, e_y: the pixel Stokes frame (component triples, V's shape).
     """
 
+    normal: Vec3
+    light: Vec3
+    view: Vec3
     n_dot_l: Tensor
     n_dot_v: Tensor
     theta_l: Tensor
     theta_v: Tensor
-    front: Tensor
-    e_x: Tensor
-    e_y: Tensor
+    n_cross_l: Vec3
+    n_cross_v: Vec3
+    e_x: Vec3
+    e_y: Vec3
+
+    @property
+    def front(self) -> Tensor:
+        """(...) bool: N·L > 0 and N·V > 0 (the terms are zero elsewhere)."""
+        return (self.n_dot_l > 0) & (self.n_dot_v > 0)
+
+    @property
+    def view_mask(self) -> Tensor:
+        """N·V > 0 as 0/1 in the dtype, V's shape (the N·L > 0 half of :attr:`front` is carried by the
+        factor [N·L]₊ both terms have)."""
+        return (self.n_dot_v > 0).to(self.n_dot_v.dtype)
 
 
-def shading_geometry(normal: Tensor, light: Tensor, view: Tensor) -> ShadingGeometry:
-    """:class:`ShadingGeometry` of broadcast (..., 3) unit vectors N, L, V."""
-    n_dot_l = dot(normal, light)
-    n_dot_v = dot(normal, view)
-    e_x, e_y = stokes_frame(view)
+def shading_geometry3(normal: Vec3, light: Vec3, view: Vec3) -> ShadingGeometry:
+    """:class:`ShadingGeometry` of unit vectors N, L, V given as broadcastable component triples."""
+    n_dot_l = dot3(normal, light)
+    n_dot_v = dot3(normal, view)
+    n_cross_l = cross3(normal, light)
+    n_cross_v = cross3(normal, view)
+    e_x, e_y = stokes_frame3(view)
     return ShadingGeometry(
+        normal=normal,
+        light=light,
+        view=view,
         n_dot_l=n_dot_l,
         n_dot_v=n_dot_v,
-        theta_l=angle_between(normal, light).clamp(max=torch.pi / 2),
-        theta_v=angle_between(normal, view).clamp(max=torch.pi / 2),
-        front=(n_dot_l > 0) & (n_dot_v > 0),
+        theta_l=angle_from(n_cross_l, n_dot_l).clamp(max=torch.pi / 2),
+        theta_v=angle_from(n_cross_v, n_dot_v).clamp(max=torch.pi / 2),
+        n_cross_l=n_cross_l,
+        n_cross_v=n_cross_v,
         e_x=e_x,
         e_y=e_y,
     )
+
+
+def shading_geometry(normal: Tensor, light: Tensor, view: Tensor) -> ShadingGeometry:
+    """:class:`ShadingGeometry` of broadcastable (..., 3) unit vectors N, L, V (not broadcast here:
+    what depends on N and V only is computed at their shape)."""
+    return shading_geometry3(components(normal), components(light), components(view))
 
 
 def sensor_plane_basis(view: Tensor) -> Tensor:

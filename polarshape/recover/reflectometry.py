@@ -34,11 +34,11 @@ from typing import Literal
 import torch
 from torch import Tensor
 
-from polarshape.brdf.body_fast import body_stokes_fast
+from polarshape.brdf.body_fast import body_parts
 from polarshape.brdf.fmbrdf import FMBRDFTables, build_tables
-from polarshape.brdf.geometry import shading_geometry
+from polarshape.brdf.geometry import Vec3, shading_geometry3
 from polarshape.brdf.params import FMBRDFParams
-from polarshape.brdf.surface import surface_stokes
+from polarshape.brdf.surface import surface_parts
 from polarshape.imaging.stokes import dolp
 from polarshape.recover.observations import Observations
 
@@ -94,8 +94,37 @@ class ReflectanceFit:
     seconds: float = 0.0
 
 
+#: Pixel·light evaluations per chunk of :func:`render_parts` on CPU: the model's few dozen
+#: temporaries then stay in the cache (a chunk's float32 temporary is 512 kB) instead of streaming
+#: through memory; measured optimum on a 2-core Xeon (benchmarks/render_parts.py). Other devices
+#: take the whole batch at once.
+RENDER_CHUNK = 1 << 17
+
+
+def _render_chunk(tables: FMBRDFTables, normals: Tensor, lights: Tensor, view: Tensor, irradiance: Tensor) -> tuple[Vec3, Vec3]:
+    """:func:`render_parts` of p pixels as components, each (K, p): light-major, so that what depends
+    on the pixel alone (N, V, the Stokes frame, θ_V and its table lookups) is computed once per
+    pixel and broadcast along the lights, with the pixels contiguous."""
+    n = tuple(normals.t().contiguous())  # 3 × (p,)
+    v = tuple(view.t().contiguous())  # 3 × (p,)
+    l = tuple(lights.permute(2, 1, 0).contiguous())  # 3 × (K, p)
+    e = irradiance.t().to(normals.dtype)  # (K, p)
+    # The two terms of polarshape.brdf.fmbrdf_stokes evaluated separately (k_s = k_b = 1), sharing
+    # the shading geometry exactly as fmbrdf_stokes does: half the cost of two public calls.
+    geo = shading_geometry3(n, l, v)  # type: ignore[arg-type]
+    surf = surface_parts(
+        geo, ior=tables.ior, scale=e, alpha=tables.alpha, beta=tables.beta, c=tables.c,
+        projected_area=tables.smith.projected_area,
+    )
+    body = body_parts(tables.body, geo, scale=e)
+    return surf, body
+
+
 def render_parts(tables: FMBRDFTables, normals: Tensor, obs: Observations) -> tuple[Tensor, Tensor]:
     """Surface and body Stokes of every observation for k_s = k_b = 1, irradiance included.
+
+    Evaluated in chunks of :data:`RENDER_CHUNK` pixel·lights on CPU (one chunk elsewhere); differentiable
+    in the normals and the tables.
 
     Args:
         tables: material tables (:func:`polarshape.brdf.build_tables`), may carry autograd history.
@@ -105,17 +134,30 @@ def render_parts(tables: FMBRDFTables, normals: Tensor, obs: Observations) -> tu
     Returns:
         (surface, body), each (P, K, 3) in the pixels' Stokes frames.
     """
-    n, l, v = torch.broadcast_tensors(normals.unsqueeze(1), obs.lights, obs.view.unsqueeze(1))  # (P, K, 3) each
-    # The two terms of polarshape.brdf.fmbrdf_stokes evaluated separately (k_s = k_b = 1), sharing
-    # the shading geometry exactly as fmbrdf_stokes does: half the cost of two public calls.
-    geo = shading_geometry(n, l, v)
-    surf = surface_stokes(
-        n, l, v, ior=tables.ior, k_s=1.0, alpha=tables.alpha, beta=tables.beta, c=tables.c,
-        projected_area=tables.smith.projected_area, geometry=geo,
-    )
-    body = body_stokes_fast(tables.body, n, l, v, k_b=1.0, geometry=geo)
-    e = obs.irradiance.unsqueeze(-1).to(surf.dtype)  # (P, K, 1)
-    return surf * e, body * e
+    p, k = obs.lights.shape[:2]
+    step = p if normals.device.type != "cpu" else max(1, RENDER_CHUNK // max(k, 1))
+    keep_graph = torch.is_grad_enabled()
+    out: Tensor | None = None  # (2, P, K, 3) when no graph is kept: chunks are stacked into it
+    parts: list[tuple[Tensor, Tensor]] = []
+    for p0 in range(0, p, step):
+        sl = slice(p0, min(p0 + step, p))
+        surf, body = _render_chunk(tables, normals[sl], obs.lights[sl], obs.view[sl], obs.irradiance[sl])
+        shape = (k, sl.stop - sl.start)
+        if keep_graph:
+            parts.append(tuple(torch.stack([c.broadcast_to(shape).t() for c in x], dim=-1) for x in (surf, body)))
+            continue
+        if out is None:
+            out = surf[0].new_empty((2, p, k, 3))
+        for x, o in zip((surf, body), out[:, sl]):
+            torch.stack([c.broadcast_to(shape).t() for c in x], dim=-1, out=o)
+    if out is not None:
+        return out[0], out[1]
+    if not parts:  # no pixels
+        empty = normals.new_zeros((p, k, 3))
+        return empty, empty.clone()
+    if len(parts) == 1:
+        return parts[0]
+    return torch.cat([s for s, _ in parts]), torch.cat([b for _, b in parts])
 
 
 def channel_weights(like: Tensor, polarised: bool) -> Tensor:

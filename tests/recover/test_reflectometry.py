@@ -46,12 +46,39 @@ def _observe(normals: Tensor, lights: Tensor, view: Tensor, truth: dict, k_b: Te
     return Observations(s, torch.ones(p, k, dtype=s.dtype), lights.expand(p, k, 3), torch.ones(p, k, dtype=s.dtype), view)
 
 
-def test_render_parts_sum_to_fmbrdf() -> None:
+@pytest.mark.parametrize("kappa", [0.0, 20.0])
+def test_render_parts_sum_to_fmbrdf(kappa: float) -> None:
     n, l, v = _scene(50, 6)
-    tables = build_tables(ior=1.5, alpha=0.3, beta=2.0, kappa=0.0)
-    obs = _observe(n, l, v, dict(ior=1.5, k_s=1.0, alpha=0.3, beta=2.0, kappa=0.0), torch.full((50,), 0.5, dtype=n.dtype))
+    tables = build_tables(ior=1.5, alpha=0.3, beta=2.0, kappa=kappa)
+    obs = _observe(n, l, v, dict(ior=1.5, k_s=1.0, alpha=0.3, beta=2.0, kappa=kappa), torch.full((50,), 0.5, dtype=n.dtype))
     surf, body = render_parts(tables, n, obs)
     torch.testing.assert_close(surf * 1.0 + 0.5 * body, obs.stokes, atol=1e-10, rtol=1e-8)
+
+
+def test_render_parts_chunks_and_autograd_give_the_same_parts(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Chunks of a few pixels (stacked into one output, or concatenated when autograd records) give
+    the parts and normal gradients of one chunk for everything."""
+    import polarshape.recover.reflectometry as reflectometry
+
+    n, l, v = _scene(40, 5)
+    tables = build_tables(ior=1.5, alpha=0.3, beta=2.0, kappa=20.0)
+    gen = torch.Generator().manual_seed(2)
+    obs = Observations(torch.zeros(40, 5, 3, dtype=n.dtype), torch.ones(40, 5, dtype=n.dtype), l.expand(40, 5, 3),
+                       0.5 + torch.rand(40, 5, generator=gen, dtype=n.dtype), v)
+    results = []
+    for chunk in (1 << 30, 7 * 5 + 3):  # one chunk; chunks of 7 pixels (the last one shorter)
+        monkeypatch.setattr(reflectometry, "RENDER_CHUNK", chunk)
+        with torch.no_grad():
+            parts = render_parts(tables, n, obs)
+        nn = n.clone().requires_grad_(True)
+        surf, body = render_parts(tables, nn, obs)
+        (surf * surf.detach().sign()).sum().add(body.sum()).backward()
+        results.append((*parts, surf.detach(), body.detach(), nn.grad))
+    for a, b in zip(results[0][:4], results[1][:4]):
+        torch.testing.assert_close(a, b, rtol=1e-15, atol=0.0)
+    # a pixel's gradient sums over its lights: the order of that sum may differ with the chunk shape
+    torch.testing.assert_close(results[0][4], results[1][4], rtol=1e-12, atol=1e-15)
+    torch.testing.assert_close(results[0][0], results[0][2], rtol=1e-15, atol=0.0)
 
 
 @pytest.mark.parametrize("per_pixel", [True, False])
