@@ -5,7 +5,9 @@ lights, irradiance included) for one material with κ = 0 (the separable case) a
 under ``torch.no_grad`` (as the normal solver calls it), and reports the median of ``--repeats`` calls in
 µs per pixel·light. Inputs are a perspective view of normals within 75° of the view and K distant lights
 (zenith 15–55°, golden-angle azimuths, like the scaling benchmark's scene) — the shapes the recovery uses:
-normals (P, 3), lights (P, K, 3), view (P, 3), irradiance (P, K).
+normals (P, 3), lights (P, K, 3), view (P, 3), irradiance (P, K). ``--normals sphere`` (default): a
+sphere's image in row-major order, as a recovery sees it; ``--normals random``: independent normals, the
+worst case for the κ > 0 table lookups (each a cache miss).
 
 Before/after: run the same script with PYTHONPATH pointing at each checkout, alternating, and compare the
 medians; ``--save FILE`` stores the outputs and ``--compare A B`` reports the largest relative differences
@@ -13,7 +15,7 @@ of two saved runs (per κ, per dtype).
 
 Usage:
     OMP_NUM_THREADS=1 python benchmarks/render_parts.py [--pixels 200000] [--lights 12] [--kappa 0 20]
-        [--dtype float32] [--threads 1] [--repeats 3] [--device cpu] [--save FILE]
+        [--dtype float32] [--threads 1] [--repeats 3] [--device cpu] [--normals sphere|random] [--save FILE]
     python benchmarks/render_parts.py --compare before.pt after.pt
 """
 
@@ -35,22 +37,41 @@ from polarshape.recover.reflectometry import render_parts
 MATERIAL = dict(ior=1.5, alpha=0.3, beta=2.0)
 
 
-def inputs(pixels: int, lights: int, dtype: torch.dtype, device: str, seed: int = 0) -> tuple[torch.Tensor, Observations]:
-    """Normals (P, 3) and observations (lights (P, K, 3), view (P, 3), irradiance (P, K))."""
+def inputs(pixels: int, lights: int, dtype: torch.dtype, device: str, seed: int = 0, field: str = "sphere") -> tuple[torch.Tensor, Observations]:
+    """Normals (P, 3) and observations (lights (P, K, 3), view (P, 3), irradiance (P, K)).
+
+    ``field``: "sphere" — the pixels of a sphere's image in row-major order (smooth normals up to 75°
+    from the view, as a recovery sees them: neighbouring pixels read neighbouring table cells);
+    "random" — normals drawn independently within 75° of the view (every lookup a cache miss: the
+    worst case for the body table of κ > 0)."""
     g = torch.Generator().manual_seed(seed)
     f64 = torch.float64
-    # perspective view: pixels over a ±15° field, V from the surface toward the camera (z forward)
-    xy = (torch.rand(pixels, 2, generator=g, dtype=f64) - 0.5) * 0.55
-    view = -torch.cat([xy, torch.ones(pixels, 1, dtype=f64)], 1)
+    r_max = math.sin(math.radians(75.0))
+    if field == "sphere":
+        side = math.ceil(math.sqrt(pixels * 4.0 / math.pi)) + 2
+        while True:
+            y, x = torch.meshgrid(torch.linspace(-1.0, 1.0, side, dtype=f64), torch.linspace(-1.0, 1.0, side, dtype=f64), indexing="ij")
+            inside = (x * x + y * y) <= 1.0
+            if int(inside.sum()) >= pixels:
+                break
+            side += 8
+        xy = torch.stack([x[inside], y[inside]], -1)[:pixels]  # row-major
+        view = -torch.cat([xy * 0.27, torch.ones(pixels, 1, dtype=f64)], 1)  # ±15° field of view
+        nxy = xy * r_max
+        normals = torch.cat([nxy, -torch.sqrt(1.0 - (nxy * nxy).sum(-1, keepdim=True))], 1)
+    else:
+        xy = (torch.rand(pixels, 2, generator=g, dtype=f64) - 0.5) * 0.55
+        view = -torch.cat([xy, torch.ones(pixels, 1, dtype=f64)], 1)
+        cos_t = 1.0 - torch.rand(pixels, generator=g, dtype=f64) * (1.0 - math.cos(math.radians(75.0)))
+        phi = torch.rand(pixels, generator=g, dtype=f64) * 2 * math.pi
+        sin_t = (1 - cos_t**2).sqrt()
+        vv = view / view.norm(dim=-1, keepdim=True)
+        t1 = torch.linalg.cross(vv, torch.tensor([1.0, 0.0, 0.0], dtype=f64).expand_as(vv))
+        t1 = t1 / t1.norm(dim=-1, keepdim=True)
+        t2 = torch.linalg.cross(vv, t1)
+        normals = cos_t[:, None] * vv + sin_t[:, None] * (torch.cos(phi)[:, None] * t1 + torch.sin(phi)[:, None] * t2)
     view = view / view.norm(dim=-1, keepdim=True)
-    # normals within 75° of the view
-    cos_t = 1.0 - torch.rand(pixels, generator=g, dtype=f64) * (1.0 - math.cos(math.radians(75.0)))
-    phi = torch.rand(pixels, generator=g, dtype=f64) * 2 * math.pi
-    sin_t = (1 - cos_t**2).sqrt()
-    t1 = torch.linalg.cross(view, torch.tensor([1.0, 0.0, 0.0], dtype=f64).expand_as(view))
-    t1 = t1 / t1.norm(dim=-1, keepdim=True)
-    t2 = torch.linalg.cross(view, t1)
-    normals = cos_t[:, None] * view + sin_t[:, None] * (torch.cos(phi)[:, None] * t1 + torch.sin(phi)[:, None] * t2)
+    normals = normals / normals.norm(dim=-1, keepdim=True)
     k = torch.arange(lights, dtype=f64)
     zen = torch.deg2rad(15.0 + 40.0 * k / max(lights - 1, 1))
     az = k * math.pi * (3.0 - math.sqrt(5.0))
@@ -102,6 +123,7 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--device", default="cpu")
+    parser.add_argument("--normals", choices=["sphere", "random"], default="sphere", help="normal field (see inputs())")
     parser.add_argument("--save", help="store the outputs (per κ, dtype) in this file")
     parser.add_argument("--compare", nargs=2, metavar=("A", "B"), help="largest relative differences of two --save files")
     args = parser.parse_args()
@@ -110,11 +132,11 @@ def main() -> None:
         return
     torch.set_num_threads(args.threads)
     print(f"polarshape from {polarshape.__file__}; torch {torch.__version__}; {platform.processor() or platform.machine()}; "
-          f"{args.threads} thread(s); P = {args.pixels}, K = {args.lights}")
+          f"{args.threads} thread(s); P = {args.pixels}, K = {args.lights}, {args.normals} normals")
     saved = {}
     for dt_name in args.dtype:
         dtype = getattr(torch, dt_name)
-        normals, obs = inputs(args.pixels, args.lights, dtype, args.device)
+        normals, obs = inputs(args.pixels, args.lights, dtype, args.device, field=args.normals)
         for kappa in args.kappa:
             tables = build_tables(**MATERIAL, kappa=kappa, device=args.device)
             with torch.no_grad():

@@ -315,8 +315,8 @@ def _trilinear_flat(channels: tuple[Tensor, ...], sizes: tuple[int, int, int], i
     base = (i0 * b + j0) * c + k0
     shape = base.shape
     si, sj, sk = (b * c if a > 1 else 0), (c if b > 1 else 0), (1 if c > 1 else 0)
-    offsets = torch.tensor([di * si + dj * sj + dk * sk for di in (0, 1) for dj in (0, 1) for dk in (0, 1)],
-                           device=base.device).reshape(8, *([1] * base.dim()))
+    corner = torch.arange(8, device=base.device)  # (di, dj, dk) = its binary digits; made on the device (no copy)
+    offsets = ((corner // 4) * si + (corner // 2 % 2) * sj + (corner % 2) * sk).reshape(8, *([1] * base.dim()))
     idx = (base.unsqueeze(0) + offsets).reshape(-1)  # (8·N,)
     out = []
     for ch in channels:

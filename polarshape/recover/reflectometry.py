@@ -94,11 +94,11 @@ class ReflectanceFit:
     seconds: float = 0.0
 
 
-#: Pixel·light evaluations per chunk of :func:`render_parts` on CPU: the model's few dozen
-#: temporaries then stay in the cache (a chunk's float32 temporary is 512 kB) instead of streaming
+#: Pixel·light evaluations per chunk of :func:`render_parts` on CPU with one thread: the model's few dozen
+#: temporaries then stay in the cache (a chunk's float32 temporary is 256 kB) instead of streaming
 #: through memory; measured optimum on a 2-core Xeon (benchmarks/render_parts.py). Other devices
 #: take the whole batch at once.
-RENDER_CHUNK = 1 << 17
+RENDER_CHUNK = 1 << 16
 
 
 def _render_chunk(tables: FMBRDFTables, normals: Tensor, lights: Tensor, view: Tensor, irradiance: Tensor) -> tuple[Vec3, Vec3]:
@@ -123,8 +123,8 @@ def _render_chunk(tables: FMBRDFTables, normals: Tensor, lights: Tensor, view: T
 def render_parts(tables: FMBRDFTables, normals: Tensor, obs: Observations) -> tuple[Tensor, Tensor]:
     """Surface and body Stokes of every observation for k_s = k_b = 1, irradiance included.
 
-    Evaluated in chunks of :data:`RENDER_CHUNK` pixel·lights on CPU (one chunk elsewhere); differentiable
-    in the normals and the tables.
+    Without autograd on CPU with one thread, evaluated in chunks of :data:`RENDER_CHUNK` pixel·lights
+    (else in one piece); differentiable in the normals and the tables.
 
     Args:
         tables: material tables (:func:`polarshape.brdf.build_tables`), may carry autograd history.
@@ -135,29 +135,23 @@ def render_parts(tables: FMBRDFTables, normals: Tensor, obs: Observations) -> tu
         (surface, body), each (P, K, 3) in the pixels' Stokes frames.
     """
     p, k = obs.lights.shape[:2]
-    step = p if normals.device.type != "cpu" else max(1, RENDER_CHUNK // max(k, 1))
-    keep_graph = torch.is_grad_enabled()
-    out: Tensor | None = None  # (2, P, K, 3) when no graph is kept: chunks are stacked into it
-    parts: list[tuple[Tensor, Tensor]] = []
+    if torch.is_grad_enabled() or normals.device.type != "cpu" or torch.get_num_threads() > 1 or p == 0:
+        # one piece: autograd keeps every intermediate anyway; with several threads every operation is
+        # a parallel region whose threads join, and on a busy box each join can wait for a descheduled
+        # thread (measured: chunks several times slower at 2 threads and load 8)
+        surf, body = _render_chunk(tables, normals, obs.lights, obs.view, obs.irradiance)
+        return tuple(torch.stack([c.broadcast_to((k, p)).t() for c in x], dim=-1) for x in (surf, body))  # type: ignore[return-value]
+    step = max(1, RENDER_CHUNK // max(k, 1))
+    out: Tensor | None = None  # (2, P, K, 3): the chunks are stacked into it
     for p0 in range(0, p, step):
         sl = slice(p0, min(p0 + step, p))
         surf, body = _render_chunk(tables, normals[sl], obs.lights[sl], obs.view[sl], obs.irradiance[sl])
-        shape = (k, sl.stop - sl.start)
-        if keep_graph:
-            parts.append(tuple(torch.stack([c.broadcast_to(shape).t() for c in x], dim=-1) for x in (surf, body)))
-            continue
         if out is None:
             out = surf[0].new_empty((2, p, k, 3))
         for x, o in zip((surf, body), out[:, sl]):
-            torch.stack([c.broadcast_to(shape).t() for c in x], dim=-1, out=o)
-    if out is not None:
-        return out[0], out[1]
-    if not parts:  # no pixels
-        empty = normals.new_zeros((p, k, 3))
-        return empty, empty.clone()
-    if len(parts) == 1:
-        return parts[0]
-    return torch.cat([s for s, _ in parts]), torch.cat([b for _, b in parts])
+            torch.stack([c.broadcast_to((k, sl.stop - sl.start)).t() for c in x], dim=-1, out=o)
+    assert out is not None
+    return out[0], out[1]
 
 
 def channel_weights(like: Tensor, polarised: bool) -> Tensor:

@@ -56,8 +56,8 @@ def test_render_parts_sum_to_fmbrdf(kappa: float) -> None:
 
 
 def test_render_parts_chunks_and_autograd_give_the_same_parts(monkeypatch: pytest.MonkeyPatch) -> None:
-    """Chunks of a few pixels (stacked into one output, or concatenated when autograd records) give
-    the parts and normal gradients of one chunk for everything."""
+    """Chunks of a few pixels (without autograd) give the parts of one chunk for everything, and the
+    autograd path (one chunk) the same parts, with normal gradients independent of the chunk setting."""
     import polarshape.recover.reflectometry as reflectometry
 
     n, l, v = _scene(40, 5)
@@ -76,7 +76,6 @@ def test_render_parts_chunks_and_autograd_give_the_same_parts(monkeypatch: pytes
         results.append((*parts, surf.detach(), body.detach(), nn.grad))
     for a, b in zip(results[0][:4], results[1][:4]):
         torch.testing.assert_close(a, b, rtol=1e-15, atol=0.0)
-    # a pixel's gradient sums over its lights: the order of that sum may differ with the chunk shape
     torch.testing.assert_close(results[0][4], results[1][4], rtol=1e-12, atol=1e-15)
     torch.testing.assert_close(results[0][0], results[0][2], rtol=1e-15, atol=0.0)
 
