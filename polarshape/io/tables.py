@@ -17,14 +17,18 @@ with array operations: every number becomes a row of ASCII digits in a (rows, wi
 from __future__ import annotations
 
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
+import torch
 from numpy.typing import NDArray
 
 __all__ = ["table_text"]
 
 #: '0000' … '9999', each 4 ASCII bytes read as one uint32 (10000,) (a gather of 4 bytes at once).
 _CHUNKS = np.frombuffer("".join(f"{i:04d}" for i in range(10_000)).encode(), dtype=np.uint32)
+#: Rows formatted at a time (their byte matrices stay in cache; blocks go to torch's threads).
+_CHUNK_ROWS = 1 << 15
 #: Below this, |x|·10^N and its floor are exact integers in float64.
 _EXACT = float(2**52)
 
@@ -159,12 +163,27 @@ def table_text(values: NDArray, *, prefix: bytes = b"", delimiters: bytes | Sequ
         raise ValueError(f"delimiters: {columns - 1} needed between {columns} columns; got {len(between)}")
     if rows == 0:
         return b""
-    pieces = [np.frombuffer(prefix, dtype=np.uint8)]
+    parts = [table[r0:r0 + _CHUNK_ROWS] for r0 in range(0, rows, _CHUNK_ROWS)]  # a few MB each: in cache
+    separators = [np.frombuffer(d, dtype=np.uint8) for d in (prefix, *between, line_end)]
+    workers = min(len(parts), max(1, torch.get_num_threads()))
+    if workers == 1:
+        return b"".join(_rows_text(part, separators, decimals) for part in parts)
+    with ThreadPoolExecutor(workers) as pool:  # numpy lets go of the GIL in its array loops
+        return b"".join(pool.map(lambda part: _rows_text(part, separators, decimals), parts))
+
+
+def _rows_text(table: NDArray, separators: list[NDArray[np.uint8]], decimals: int) -> bytes:
+    """:func:`table_text` of a (N, C) table; ``separators``: the prefix, the C − 1 delimiters, the line end."""
+    rows, columns = table.shape
+    pieces = [separators[0]]
     for c in range(columns):  # one column at a time: (N,) temporaries
         column = np.ascontiguousarray(table[:, c])
-        pieces.append(_float_cells(column.astype(np.float64), decimals) if table.dtype.kind == "f"
-                      else _integer_cells(column.astype(np.int64)))
-        pieces.append(np.frombuffer(between[c] if c < columns - 1 else line_end, dtype=np.uint8))
+        if c and np.array_equal(column, table[:, c - 1]):  # (an OBJ face's "a//a": the same cells twice)
+            pieces.append(pieces[-2])
+        else:
+            pieces.append(_float_cells(column.astype(np.float64), decimals) if table.dtype.kind == "f"
+                          else _integer_cells(column.astype(np.int64)))
+        pieces.append(separators[c + 1])
     widths = [p.shape[-1] for p in pieces]
     line = np.empty((rows, sum(widths)), dtype=np.uint8)
     at = 0
