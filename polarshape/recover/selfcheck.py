@@ -473,21 +473,26 @@ def clipped_lobe(inputs: RecoveryInputs, normals: Tensor, params: Mapping[str, f
     if alpha is None or not math.isfinite(alpha):
         return None
     n = normals.detach().to("cpu", torch.float64)  # (H, W, 3)
-    lights = inputs.lights.to("cpu", torch.float64)  # (K, H, W, 3)
     view = inputs.view.to("cpu", torch.float64)  # (H, W, 3)
-    cos_h = (F.normalize(lights + view, dim=-1) * n).sum(-1)  # (K, H, W) cosine of the half-vector angle
     core_deg = max(math.degrees(math.atan(max(alpha, 0.0))), LOBE_CORE_MIN_DEG)
-    front = ((lights * n).sum(-1) > 0) & ((view * n).sum(-1) > 0)
-    seen = front & inputs.mask.cpu() & torch.isfinite(n).all(-1)  # (K, H, W)
-    core = seen & (cos_h >= math.cos(math.radians(core_deg)))
+    cos_core = math.cos(math.radians(core_deg))
+    visible = inputs.mask.cpu() & torch.isfinite(n).all(-1) & ((view * n).sum(-1) > 0)  # (H, W)
     saturated = inputs.saturated.cpu()
-    n_core, n_sat = int(core.sum()), int((core & saturated).sum())
-    shows = core.flatten(1).any(1)  # (K,)
-    peak = torch.where(seen, cos_h, torch.full_like(cos_h, -2.0)).flatten(1).argmax(1)  # (K,) nearest the mirror
-    peak_clipped = saturated.flatten(1).gather(1, peak[:, None])[:, 0] & shows
+    n_core = n_sat = with_core = peak_clipped = 0
+    for k in range(inputs.num_lights):  # one light at a time: (H, W, 3) float64 temporaries only
+        lights = inputs.lights[k].to("cpu", torch.float64)  # (H, W, 3)
+        cos_h = (F.normalize(lights + view, dim=-1) * n).sum(-1)  # (H, W) cosine of the half-vector angle
+        seen = visible & ((lights * n).sum(-1) > 0)  # (H, W)
+        core = seen & (cos_h >= cos_core)
+        n_core += int(core.sum())
+        n_sat += int((core & saturated[k]).sum())
+        if bool(core.any()):
+            with_core += 1
+            peak = torch.where(seen, cos_h, torch.full_like(cos_h, -2.0)).flatten().argmax()  # nearest the mirror
+            peak_clipped += int(saturated[k].flatten()[peak])
     return {"core_deg": core_deg, "core_observations": n_core, "saturated": n_sat,
-            "clipped_fraction": n_sat / n_core if n_core else None, "lights_with_core": int(shows.sum()),
-            "lights_peak_clipped": int(peak_clipped.sum())}
+            "clipped_fraction": n_sat / n_core if n_core else None, "lights_with_core": with_core,
+            "lights_peak_clipped": peak_clipped}
 
 
 def _check_clipped_lobe(checks: SelfChecks, inputs: RecoveryInputs, result: RecoveryResult,
