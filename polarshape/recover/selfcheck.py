@@ -479,7 +479,7 @@ def clipped_lobe(inputs: RecoveryInputs, normals: Tensor, params: Mapping[str, f
     visible = inputs.mask.cpu() & torch.isfinite(n).all(-1) & ((view * n).sum(-1) > 0)  # (H, W)
     saturated = inputs.saturated.cpu()
     n_core = n_sat = with_core = peak_clipped = 0
-    for k in range(inputs.num_lights):  # one light at a time: (H, W, 3) float64 temporaries only
+    for k in range(inputs.lights.shape[0]):  # one light at a time: (H, W, 3) float64 temporaries only
         lights = inputs.lights[k].to("cpu", torch.float64)  # (H, W, 3)
         cos_h = (F.normalize(lights + view, dim=-1) * n).sum(-1)  # (H, W) cosine of the half-vector angle
         seen = visible & ((lights * n).sum(-1) > 0)  # (H, W)
