@@ -157,17 +157,17 @@ def depth_to_mesh(
     a, b, c, d = a[full], b[full], c[full], d[full]
     faces = np.concatenate([np.stack([a, c, b], axis=1), np.stack([b, c, d], axis=1)])  # (F, 3)
 
-    computed = _grid_normals(points, valid, view)  # (H, W, 3)
     if normals is not None:
         n = to_numpy(normals).astype(np.float64)
         if n.shape != points.shape:
             raise ValueError(f"normals must have shape (H, W, 3) = {points.shape}; got {n.shape}")
-        norm = np.linalg.norm(n, axis=-1, keepdims=True)
-        usable = np.isfinite(norm[..., 0]) & (norm[..., 0] > 1e-6)
-        n = np.where(usable[..., None], n / np.where(usable[..., None], norm, 1.0), computed)
+        n, norm = n[valid], np.linalg.norm(n[valid], axis=-1, keepdims=True)  # (V, 3), (V, 1)
+        usable = np.isfinite(norm[:, 0]) & (norm[:, 0] > 1e-6)
+        vertex_normals = n / np.where(usable[:, None], norm, 1.0)  # (V, 3)
+        if not usable.all():  # the grid's own normals where none is given (computed only then)
+            vertex_normals[~usable] = _grid_normals(points, valid, view)[valid][~usable]
     else:
-        n = computed
-    vertex_normals = n[valid]  # (V, 3)
+        vertex_normals = _grid_normals(points, valid, view)[valid]  # (V, 3)
 
     mesh = trimesh.Trimesh(
         vertices=vertices,
