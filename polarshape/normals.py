@@ -222,10 +222,15 @@ def _render_fmbrdf(inputs: RecoveryInputs, state: FMBRDFState) -> Tensor:
     pixels = inputs.mask
     obs = flatten_observations(inputs, pixels)
     p = state.params
+    normals, k_b = state.normals[pixels], state.k_b[pixels]  # (P, 3), (P,)
+    parts = []
     with torch.no_grad():
         tables = build_tables(ior=p.ior, alpha=p.alpha, beta=p.beta, kappa=p.kappa, device=inputs.stokes.device)
-        surf, body = render_parts(tables, state.normals[pixels], obs)
-        s = p.k_s * surf + state.k_b[pixels][:, None, None] * body  # (P, K, 3)
+        for start in range(0, normals.shape[0], CHUNK_PIXELS):  # (P, K, 3) temporaries of a chunk only
+            idx = torch.arange(start, min(start + CHUNK_PIXELS, normals.shape[0]), device=normals.device)
+            surf, body = render_parts(tables, normals[idx], obs.select(idx))
+            parts.append(p.k_s * surf + k_b[idx][:, None, None] * body)  # (chunk, K, 3)
+        s = torch.cat(parts) if parts else normals.new_zeros((0, obs.stokes.shape[1], 3))  # (P, K, 3)
     h, w = inputs.shape
     out = torch.zeros(h, w, *s.shape[1:], dtype=s.dtype, device=s.device)
     out[pixels] = s

@@ -300,6 +300,16 @@ def _integrate_map(normals: np.ndarray, mask: np.ndarray, camera: Camera, config
     )
 
 
+def _integrated_surface(result: NormalsResult, camera: Camera, config: RunConfig, nearfield: NearFieldResult | None,
+                        integrated: dict[str, Any]) -> Surface:
+    """:func:`integrate`, or the surface an earlier stage integrated from these very normals and mask (the
+    interreflection stage's, when it changed neither: a full frame's integration is seconds)."""
+    if (integrated.get("normals") is result.normals and integrated.get("mask") is result.mask
+            and integrated.get("nearfield") is nearfield):
+        return integrated["surface"]
+    return integrate(result, camera, config, nearfield)
+
+
 def integrate(result: NormalsResult, camera: Camera, config: RunConfig, nearfield: NearFieldResult | None = None
               ) -> Surface:
     """Depth of the recovered normals (the pixels with a finite normal); with near-field lights, placed
@@ -360,7 +370,8 @@ def near_field(capture: Capture, inputs: RecoveryInputs, result: NormalsResult, 
 
 
 def interreflection(inputs: RecoveryInputs, result: NormalsResult, camera: Camera, capture: Capture, config: RunConfig,
-                    log: _StageLog, nearfield: NearFieldResult | None = None
+                    log: _StageLog, nearfield: NearFieldResult | None = None, *,
+                    integrated: dict[str, Any] | None = None
                     ) -> tuple[RecoveryInputs, NormalsResult, dict[str, Any], Tensor | None]:
     """Light the object sends onto itself (``interreflection:``): taken out and re-fitted, or marked.
 
@@ -382,6 +393,9 @@ def interreflection(inputs: RecoveryInputs, result: NormalsResult, camera: Camer
     (needs ``albedo_scale``). Under point lights the surface is placed where ``nearfield`` found it
     (the bounce points must be lit from where the lights really are).
 
+    ``integrated`` (a dict, optional) receives the last surface integrated and the result it was integrated from
+    (:func:`_integrated_surface`: the integration stage reuses it when the normals did not change).
+
     Returns:
         the inputs the final result was fitted to, that result, the record for params.json
         (``interreflection``) and the (H, W) map of the largest bounce fraction over the lights (None
@@ -400,6 +414,8 @@ def interreflection(inputs: RecoveryInputs, result: NormalsResult, camera: Camer
     fraction_map: Tensor | None = None
     for round_index in range(options.iterations if options.albedo_scale is not None else 1):
         surface = integrate(result, camera, config, nearfield)
+        if integrated is not None:
+            integrated.update(surface=surface, normals=result.normals, mask=result.mask, nearfield=nearfield)
         bounce = estimate_one_bounce(
             result.normals, result.albedo, surface.depth, camera, inputs.view, capture.lights(), result.params,
             samples=options.samples, max_pixels=options.max_pixels, seed=config.seed,
@@ -937,9 +953,10 @@ def _run_stages(config: RunConfig, work: Path, out: Path, device: str, log: _Sta
             log.skip("recovery", item)
     with log.stage("nearfield"):
         inputs, result, nearfield = near_field(capture, inputs, result, camera, config, log)
+    integrated: dict[str, Any] = {}
     with log.stage("interreflection"):
         inputs, result, bounce_record, bounce_map = interreflection(inputs, result, camera, capture, config, log,
-                                                                    nearfield)
+                                                                    nearfield, integrated=integrated)
     with log.stage("validation"):
         result, validation = validate(inputs, result, config, log)
     with log.stage("checks"):
@@ -947,7 +964,7 @@ def _run_stages(config: RunConfig, work: Path, out: Path, device: str, log: _Sta
                                  earlier=list(warned), fitted_material=not _material_fixed(config))
     result = _mark_albedo_edges(result, inputs)
     with log.stage("integration"):
-        surface = integrate(result, camera, config, nearfield)
+        surface = _integrated_surface(result, camera, config, nearfield, integrated)
     with log.stage("mesh"):
         mesh_info = build_meshes(work, result, surface, config, log)
     with log.stage("export"):

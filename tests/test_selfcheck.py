@@ -223,3 +223,36 @@ def test_clean_run_summary_says_what_ran(sphere: Capture, tmp_path: Path, capsys
     assert "no held-out validation" not in summary  # holdout: none is not a reason to show
     assert np.isfinite(params["checks"]["residual_to_noise"])
     assert torch.isfinite(torch.tensor(params["checks"]["convention"]["direct"]))
+
+
+@pytest.mark.parametrize("model", ["fmbrdf", "lambertian"])
+def test_residual_to_noise_is_the_full_frame_formula(model: str) -> None:
+    """residual_to_noise works on each light's usable pixels only: the ratios of the formula over whole frames
+    (χ² of the observations whose 3×3 neighbours are usable, their median and mean)."""
+    from types import SimpleNamespace
+
+    import torch.nn.functional as F
+
+    from polarshape.recover.noise import NoiseModel
+    from polarshape.recover.selfcheck import residual_to_noise
+
+    gen = torch.Generator().manual_seed(0)
+    k, h, w = 5, 23, 31
+    observed = torch.rand(k, 3, h, w, generator=gen, dtype=torch.float32)
+    rendered = observed + 0.01 * torch.randn(k, 3, h, w, generator=gen)
+    valid = torch.rand(k, h, w, generator=gen) > 0.2
+    mask = torch.zeros(h, w, dtype=torch.bool)
+    mask[2:-3, 4:-2] = True
+    noise = NoiseModel(1e-5, 2e-4, "four-site redundancy")
+    inputs = SimpleNamespace(valid=valid, mask=mask, noise=noise, noise_std=1e-3, has_polarisation=True, num_lights=k)
+    result = SimpleNamespace(observed=observed, rendered=rendered, model=model)
+    use = (-F.max_pool2d(-(valid & mask).float().unsqueeze(1), 3, stride=1, padding=1)).squeeze(1) > 0.5
+    chi = []
+    for i in range(k):
+        obs, pred = observed[i].double(), rendered[i].double()
+        chi.append(((pred[0] - obs[0]) / noise.std(obs[0]))[use[i]].pow(2).float())
+        if model == "fmbrdf":
+            chi += [((pred[c] - obs[c]) / noise.linear_std(obs[0]))[use[i]].pow(2).float() for c in (1, 2)]
+    chi2 = torch.cat(chi).double()
+    want = (float((chi2.median() / 0.454936).sqrt()), float(chi2.mean().sqrt()), chi2.numel())
+    assert residual_to_noise(inputs, result) == pytest.approx(want, rel=1e-12, abs=0)

@@ -31,6 +31,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -57,10 +58,12 @@ class AlbedoEdges:
 
 
 def _gather(x: Tensor, ys: Tensor, xs: Tensor) -> tuple[Tensor, Tensor]:
-    """x (K, H, W) at the blocks (ys, xs) (N,) each: (K, N) values (clamped at the border) and (N,) in-bounds."""
-    h, w = x.shape[-2:]
+    """x (H, W, K) (pixel-major: a block's K values side by side, ~4× faster to gather than (K, H, W)) at the
+    blocks (ys, xs) (N,) each: (K, N) values (clamped at the border) and (N,) in-bounds."""
+    h, w, k = x.shape
     inside = (ys >= 0) & (ys < h) & (xs >= 0) & (xs < w)
-    return x[:, ys.clamp(0, h - 1), xs.clamp(0, w - 1)], inside
+    flat = ys.clamp(0, h - 1) * w + xs.clamp(0, w - 1)  # (N,)
+    return x.reshape(h * w, k).index_select(0, flat).T, inside
 
 
 def _step_sign(q: Tensor, usable: Tensor, threshold: float) -> tuple[Tensor, Tensor, Tensor, Tensor]:
@@ -74,15 +77,31 @@ def _step_sign(q: Tensor, usable: Tensor, threshold: float) -> tuple[Tensor, Ten
     return up, down, q_max, q_min
 
 
-def _candidates(log_s0: Tensor, usable: Tensor, oy: int, ox: int, threshold: float) -> tuple[Tensor, Tensor]:
+def _candidates(scan: Tensor, oy: int, ox: int, threshold: float) -> tuple[Tensor, Tensor]:
     """Blocks a whose log-ratio to a + (oy, ox) may be one albedo step (the cheap necessary part of
-    :func:`_consistent_step`, over the whole grid): their rows and columns (N,) each."""
-    h, w = log_s0.shape[-2:]
+    :func:`_consistent_step`, over the whole grid): their rows and columns (N,) each.
+
+    ``scan`` (K, H, W) is log s0 with NaN at the observations that are not usable: a ratio with one is NaN,
+    which ``fmax``/``fmin`` pass over — the largest and smallest usable q of :func:`_step_sign` (−inf, +inf
+    without one), one light at a time into (H, W) buffers (no (K, H, W) temporaries).
+    """
+    h, w = scan.shape[-2:]
     c0, c1 = max(0, -ox), w - max(0, ox)
-    a = (slice(None), slice(0, h - oy), slice(c0, c1))
-    b = (slice(None), slice(oy, h), slice(c0 + ox, c1 + ox))
-    q = log_s0[b] - log_s0[a]  # (K, H − oy, W − |ox|)
-    up, down, _, _ = _step_sign(q, usable[a] & usable[b], threshold)
+    a = (slice(0, h - oy), slice(c0, c1))
+    b = (slice(oy, h), slice(c0 + ox, c1 + ox))
+    q_max = torch.full((h - oy, c1 - c0), -math.inf, dtype=scan.dtype, device=scan.device)
+    q_min = torch.full_like(q_max, math.inf)
+    q = torch.empty_like(q_max)
+    # numpy's fmax/fmin on the CPU (~3× torch's there), torch's elsewhere
+    lib, bufs = (np, [t.numpy() for t in (scan, q_max, q_min, q)]) if scan.device.type == "cpu" else (
+        torch, [scan, q_max, q_min, q])
+    lights, hi, lo, diff = bufs
+    for light in lights:  # (H, W)
+        lib.subtract(light[b], light[a], out=diff)
+        lib.fmax(hi, diff, out=hi)
+        lib.fmin(lo, diff, out=lo)
+    up = (q_max >= threshold) & (q_min >= -0.1 * q_max)
+    down = (q_min <= -threshold) & (q_max <= -0.1 * q_min)
     ys, xs = torch.nonzero(up | down, as_tuple=True)
     return ys, xs + c0
 
@@ -106,17 +125,18 @@ def _consistent_step(q: Tensor, usable: Tensor, threshold: float, max_spread: fl
     return (up | down) & (clear.sum(0) >= min_lights), clear
 
 
-def _isolated_steps(log_s0: Tensor, usable: Tensor, dy: int, dx: int, span: int, threshold: float,
+def _isolated_steps(log_s0: Tensor, usable: Tensor, scan: Tensor, dy: int, dx: int, span: int, threshold: float,
                     max_spread: float, min_lights: int, flat: float = 0.25) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """The blocks a with a step from a to a + span·o (o = (dy, dx)) where the radiance is flat on both sides
     of it (a step, not a shading ramp): under the lights that see the step clearly, the change from a − o to
     a and from a + span·o to a + (span + 1)·o is at most ``flat`` of it, seen under at least ``min_lights``
-    of them (a step at the border of the usable observations is not taken).
+    of them (a step at the border of the usable observations is not taken). ``log_s0`` and ``usable`` (H, W, K)
+    pixel-major (:func:`_gather`); ``scan`` (K, H, W): :func:`_candidates`'.
 
     Returns:
         rows, columns (N,) of those blocks a, clear (K, N) lights, log-steps (K, N).
     """
-    ys, xs = _candidates(log_s0, usable, span * dy, span * dx, threshold)
+    ys, xs = _candidates(scan, span * dy, span * dx, threshold)
     start, ok_a = _gather(log_s0, ys, xs)[0], _gather(usable, ys, xs)[0]
     end, ok_b = _gather(log_s0, ys + span * dy, xs + span * dx)[0], _gather(usable, ys + span * dy, xs + span * dx)[0]
     total = end - start  # (K, N)
@@ -172,18 +192,20 @@ def find_albedo_edges(
     tiny = 1e-6
     ok = usable & (block_s0 > tiny)
     log_s0 = torch.log(block_s0.to(torch.float32).clamp_min(tiny))
+    scan = log_s0.masked_fill(~ok, math.nan)  # (K, H, W) the candidates' scan (_candidates)
+    log_s0, ok = log_s0.permute(1, 2, 0).contiguous(), ok.permute(1, 2, 0).contiguous()  # (H, W, K) for _gather
     threshold = math.log(min_ratio)
     h, w = block_s0.shape[-2:]
     adjacent = torch.zeros((h, w), dtype=torch.bool, device=block_s0.device)
     on_edge = torch.zeros_like(adjacent)
     for dy, dx in _AXES:
-        ys, xs, _, _ = _isolated_steps(log_s0, ok, dy, dx, 1, threshold, max_spread, min_lights)
+        ys, xs, _, _ = _isolated_steps(log_s0, ok, scan, dy, dx, 1, threshold, max_spread, min_lights)
         adjacent[ys, xs] = True
         adjacent[ys + dy, xs + dx] = True
         # a block b = a + o between a and a + 2o: its s0 at least ``share`` of the log-step from each side
-        ys, xs, clear, total = _isolated_steps(log_s0, ok, dy, dx, 2, threshold, max_spread, min_lights)
+        ys, xs, clear, total = _isolated_steps(log_s0, ok, scan, dy, dx, 2, threshold, max_spread, min_lights)
         mid, ok_mid = _gather(log_s0, ys + dy, xs + dx)[0], _gather(ok, ys + dy, xs + dx)[0]
-        part = (mid - log_s0[:, ys, xs]) / torch.where(total.abs() > 0, total, torch.ones_like(total))
+        part = (mid - _gather(log_s0, ys, xs)[0]) / torch.where(total.abs() > 0, total, torch.ones_like(total))
         seen = clear & ok_mid
         inside = (part >= share) & (part <= 1 - share)
         between = (inside | ~seen).all(0) & (seen.sum(0) >= min_lights)

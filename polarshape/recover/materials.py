@@ -54,7 +54,7 @@ from polarshape.brdf.params import FMBRDFParams
 from polarshape.recover.coarse_to_fine import (
     FMBRDFState, KnownMaterial, SolveLog, fit_albedo_scale, solve_fmbrdf,
 )
-from polarshape.recover.normal_solver import NormalProblem, huber_delta, refine_normals
+from polarshape.recover.normal_solver import CHUNK_PIXELS, NormalProblem, huber_delta, refine_normals
 from polarshape.recover.observations import Observations, RecoveryInputs, flatten_observations
 from polarshape.recover.options import MAX_MATERIALS, RecoveryOptions
 from polarshape.recover.reflectometry import ALPHA_GRID, fit_reflectance
@@ -554,7 +554,12 @@ def select_materials(inputs: RecoveryInputs, state: FMBRDFState, options: Recove
     tables: dict = {}
     problem = NormalProblem.build(material_tables(p1, mask.device, tables), obs_all.stokes, p1.k_s,
                                   options.per_pixel_albedo, p1.k_b, inputs.has_polarisation, 1.0)
-    delta = huber_delta(obs_all, inputs.noise_std, problem.residual(state.normals[mask], obs_all)[0])
+    normals = state.normals[mask]  # (P, 3)
+    chunks = [torch.arange(a, min(a + CHUNK_PIXELS, normals.shape[0]), device=normals.device)
+              for a in range(0, normals.shape[0], CHUNK_PIXELS)]  # (P, K, 3) temporaries of a chunk only
+    residual = torch.cat([problem.residual(normals[i], obs_all.select(i))[0] for i in chunks]) if chunks else \
+        problem.residual(normals, obs_all)[0]
+    delta = huber_delta(obs_all, inputs.noise_std, residual)
     sigma2 = (delta / 3.0) ** 2
     rows, cols = _lattice(mask, SELECTION_PIXELS)
     lat = mask[rows, cols]

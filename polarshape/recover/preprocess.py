@@ -685,18 +685,40 @@ def _superpixel_next_to_edges(stokes: Tensor, edges: AlbedoEdges, mask: Tensor, 
                               to_frames: Tensor | None, *, demosaic: str) -> None:
     """Replace in place the bilinear Stokes (K, 3, H, W) of the ``mask`` blocks next to an albedo step (and not
     on it) with the block's own four-site estimate: the interpolation from the other side is a false polarisation.
-    The frames are read again only when there is such a block."""
+    The frames are read again only when there is such a block, and without a calibration only at those blocks
+    (:func:`_blocks_side_by_side`: the super-pixel estimate of a block is its own four sites')."""
     swap = edges.adjacent & ~edges.on_edge & mask  # (H, W)
     if demosaic != "bilinear" or not bool(swap.any()):
         return
+    ys, xs = torch.nonzero(swap.cpu(), as_tuple=True)  # (N,) each
+    basis = None if to_frames is None else to_frames[ys, xs].unsqueeze(0)  # (1, N, 2, 2)
     for i in range(stokes.shape[0]):
-        if brackets is None:
+        if polcal is not None:  # per-pixel black level and analysers: the whole frame, as preprocessing read it
             mosaic = counts_to_float(frames[i], capture.bit_depth, capture.spec.camera.black_level, dtype=torch.float64)
+            s, _ = _stokes_and_sites(mosaic, capture.layout, polcal, demosaic="superpixel", sample_at="centre")
+            if to_frames is not None:
+                s = sensor_plane_stokes(s, basis=to_frames)
+            stokes[i] = torch.where(swap, s, stokes[i])
+            continue
+        if brackets is None:  # the blocks' counts only, converted as the whole frame would be
+            mosaic = counts_to_float(_blocks_side_by_side(frames[i], ys, xs), capture.bit_depth,
+                                     capture.spec.camera.black_level, dtype=torch.float64)  # (2, 2N)
         else:
-            mosaic = brackets.merge(i).radiance
-        s, _ = _stokes_and_sites(mosaic, capture.layout, polcal, demosaic="superpixel", sample_at="centre")
-        if to_frames is not None:
-            s = sensor_plane_stokes(s, basis=to_frames)
-        stokes[i] = torch.where(swap, s, stokes[i])
+            mosaic = _blocks_side_by_side(brackets.merge(i).radiance, ys, xs)
+        s = superpixel_stokes(mosaic, capture.layout, demosaic="superpixel")  # (3, 1, N)
+        if basis is not None:
+            s = sensor_plane_stokes(s, basis=basis)
+        stokes[i, :, ys, xs] = s[:, 0].to(stokes.dtype)
     logger.debug("albedo edges: %d blocks next to a step (own-site estimate), %d on one (left out)",
                  int(swap.sum()), int(edges.on_edge.sum()))
+
+
+def _blocks_side_by_side(mosaic: np.ndarray | Tensor, ys: Tensor, xs: Tensor) -> np.ndarray | Tensor:
+    """The 2×2 blocks (ys, xs) (N,) of a mosaic (2H, 2W) as one (2, 2N) mosaic, block n at columns 2n, 2n + 1
+    (the layout of every block unchanged)."""
+    h, w = mosaic.shape[0] // 2, mosaic.shape[1] // 2
+    if isinstance(mosaic, Tensor):
+        blocks = mosaic.reshape(h, 2, w, 2)[ys.to(mosaic.device), :, xs.to(mosaic.device)]  # (N, 2, 2)
+        return blocks.permute(1, 0, 2).reshape(2, -1)
+    blocks = mosaic.reshape(h, 2, w, 2)[ys.numpy(), :, xs.numpy()]  # (N, 2, 2)
+    return np.ascontiguousarray(blocks.transpose(1, 0, 2)).reshape(2, -1)

@@ -183,8 +183,27 @@ def _interior(usable: Tensor) -> Tensor:
     reaches one block further, so the neighbours of an edge block (texture step, silhouette, cast
     shadow; flagged mixed or dark) carry interpolation errors no noise model has (a 3-pixel checker
     at 32²: residual 9× the noise on all observations, 1.3× on these)."""
-    x = usable.to(torch.float32).unsqueeze(1)  # (K, 1, H, W)
-    return (-F.max_pool2d(-x, 3, stride=1, padding=1)).squeeze(1) > 0.5
+    rows = usable.clone()  # the 3×3 minimum, separably (a row's three, then a column's); the border has fewer
+    rows[..., 1:] &= usable[..., :-1]
+    rows[..., :-1] &= usable[..., 1:]
+    out = rows.clone()
+    out[..., 1:, :] &= rows[..., :-1, :]
+    out[..., :-1, :] &= rows[..., 1:, :]
+    return out
+
+
+def _at(x: Tensor, where: Tensor) -> Tensor:
+    """``x[..., where]`` (*, N) of x (*, H, W) at the pixels ``where`` (H, W) bool, on the CPU (through numpy:
+    several times faster than torch's boolean indexing there), in x's dtype."""
+    x = x.detach().cpu().contiguous()
+    flat = x.numpy().reshape(*x.shape[:-2], -1)  # (*, H·W)
+    return torch.from_numpy(flat.compress(where.cpu().numpy().ravel(), axis=-1))
+
+
+def _lower_median(v: Tensor) -> float:
+    """``float(v.median())`` of a 1-D CPU tensor (the lower middle value for an even count), by a numpy partition."""
+    k = (v.numel() - 1) // 2
+    return float(np.partition(v.numpy(), k)[k])
 
 
 def residual_to_noise(inputs: RecoveryInputs, result: RecoveryResult) -> tuple[float, float, int]:
@@ -197,19 +216,19 @@ def residual_to_noise(inputs: RecoveryInputs, result: RecoveryResult) -> tuple[f
     use = _interior(inputs.valid & inputs.mask.unsqueeze(0)).cpu()  # (K, H, W)
     polarised = inputs.has_polarisation and result.model == "fmbrdf"
     chi: list[Tensor] = []
-    for k in range(inputs.num_lights):  # one light at a time: (3, H, W) float64 temporaries only
-        obs = result.observed[k].detach().cpu().to(torch.float64)  # (3, H, W)
-        pred = result.rendered[k].detach().cpu().to(torch.float64)
+    for k in range(inputs.num_lights):  # one light at a time, its usable pixels only: (3, N) float64
+        obs = _at(result.observed[k], use[k]).to(torch.float64)  # (3, N)
+        pred = _at(result.rendered[k], use[k]).to(torch.float64)
         s0 = obs[0]
-        chi.append(((pred[0] - s0) / noise.std(s0))[use[k]].pow(2).to(torch.float32))
+        chi.append(((pred[0] - s0) / noise.std(s0)).pow(2).to(torch.float32))
         if polarised:
             sigma = noise.linear_std(s0)
-            chi += [((pred[c] - obs[c]) / sigma)[use[k]].pow(2).to(torch.float32) for c in (1, 2)]
+            chi += [((pred[c] - obs[c]) / sigma).pow(2).to(torch.float32) for c in (1, 2)]
     chi2 = torch.cat(chi).to(torch.float64)
     chi2 = chi2[torch.isfinite(chi2)]
     if chi2.numel() == 0:
         return math.nan, math.nan, 0
-    return (float((chi2.median() / _CHI2_1_MEDIAN).sqrt()), float(chi2.mean().sqrt()), int(chi2.numel()))
+    return (math.sqrt(_lower_median(chi2) / _CHI2_1_MEDIAN), float(chi2.mean().sqrt()), int(chi2.numel()))
 
 
 def _check_residual(checks: SelfChecks, inputs: RecoveryInputs, result: RecoveryResult) -> None:
@@ -265,8 +284,8 @@ def convention_scores(inputs: RecoveryInputs, normals: Tensor, ok: Tensor) -> di
     total, direct, mirrored, seen = 0.0, 0.0, 0.0, torch.zeros_like(ok)
     for k in range(inputs.num_lights):  # one light at a time
         use = inputs.valid[k].cpu() & ok  # (H, W)
-        s = inputs.stokes[k].detach().cpu().to(torch.float64)[:, use]  # (3, P)
-        angle, p = aolp(s, dim=0), phi[use]
+        s = _at(inputs.stokes[k], use).to(torch.float64)  # (3, P)
+        angle, p = aolp(s, dim=0), _at(phi, use)
         weight = dolp(s, dim=0, eps=1e-6) * s[0].clamp_min(0.0)
         total += float(weight.sum())
         direct += float((torch.cos(4 * (angle - p)) * weight).sum())
@@ -361,13 +380,15 @@ def frame_order(inputs: RecoveryInputs, *, restarts: int = 20, seed: int = 0) ->
     use = (inputs.valid & inputs.mask.unsqueeze(0)).all(0).cpu()  # (H, W): lit and usable in every frame
     if k < 5 or int(use.sum()) < 16:
         return {"skipped": f"{int(use.sum())} pixels lit in all {k} frames (need ≥ 16, and ≥ 5 lights)"}
-    s0 = inputs.stokes[:, 0].detach().cpu().to(torch.float64)[:, use].numpy()  # (K, P)
+    s0 = _at(inputs.stokes[:, 0], use).to(torch.float64).numpy()  # (K, P)
     rows, cols = torch.nonzero(use, as_tuple=True)
     centre = len(rows) // 2  # the lights at one pixel of the region (point lights vary a little across it)
     r, c = int(rows[centre]), int(cols[centre])
     lights = (inputs.lights[:, r, c].detach().cpu().to(torch.float64)
               * inputs.irradiance[:, r, c].detach().cpu().to(torch.float64)[:, None]).numpy()  # (K, 3)
-    basis = np.linalg.svd(s0, full_matrices=False)[0][:, :3]  # (K, 3)
+    # the 3 leading left singular vectors of s0, as the eigenvectors of its (K, K) Gram matrix (an SVD of the
+    # (K, P) matrix costs ~10× more at a full frame); only their span enters the residuals
+    basis = np.linalg.eigh(s0 @ s0.T)[1][:, ::-1][:, :3]  # (K, 3)
     declared = _projection_residual(basis, lights)
     order, best = _best_order(basis, lights, restarts, np.random.default_rng(seed))
     return {"declared": declared, "best": best, "order": order, "pixels": int(use.sum())}
@@ -452,21 +473,26 @@ def clipped_lobe(inputs: RecoveryInputs, normals: Tensor, params: Mapping[str, f
     if alpha is None or not math.isfinite(alpha):
         return None
     n = normals.detach().to("cpu", torch.float64)  # (H, W, 3)
-    lights = inputs.lights.to("cpu", torch.float64)  # (K, H, W, 3)
     view = inputs.view.to("cpu", torch.float64)  # (H, W, 3)
-    cos_h = (F.normalize(lights + view, dim=-1) * n).sum(-1)  # (K, H, W) cosine of the half-vector angle
     core_deg = max(math.degrees(math.atan(max(alpha, 0.0))), LOBE_CORE_MIN_DEG)
-    front = ((lights * n).sum(-1) > 0) & ((view * n).sum(-1) > 0)
-    seen = front & inputs.mask.cpu() & torch.isfinite(n).all(-1)  # (K, H, W)
-    core = seen & (cos_h >= math.cos(math.radians(core_deg)))
+    cos_core = math.cos(math.radians(core_deg))
+    visible = inputs.mask.cpu() & torch.isfinite(n).all(-1) & ((view * n).sum(-1) > 0)  # (H, W)
     saturated = inputs.saturated.cpu()
-    n_core, n_sat = int(core.sum()), int((core & saturated).sum())
-    shows = core.flatten(1).any(1)  # (K,)
-    peak = torch.where(seen, cos_h, torch.full_like(cos_h, -2.0)).flatten(1).argmax(1)  # (K,) nearest the mirror
-    peak_clipped = saturated.flatten(1).gather(1, peak[:, None])[:, 0] & shows
+    n_core = n_sat = with_core = peak_clipped = 0
+    for k in range(inputs.lights.shape[0]):  # one light at a time: (H, W, 3) float64 temporaries only
+        lights = inputs.lights[k].to("cpu", torch.float64)  # (H, W, 3)
+        cos_h = (F.normalize(lights + view, dim=-1) * n).sum(-1)  # (H, W) cosine of the half-vector angle
+        seen = visible & ((lights * n).sum(-1) > 0)  # (H, W)
+        core = seen & (cos_h >= cos_core)
+        n_core += int(core.sum())
+        n_sat += int((core & saturated[k]).sum())
+        if bool(core.any()):
+            with_core += 1
+            peak = torch.where(seen, cos_h, torch.full_like(cos_h, -2.0)).flatten().argmax()  # nearest the mirror
+            peak_clipped += int(saturated[k].flatten()[peak])
     return {"core_deg": core_deg, "core_observations": n_core, "saturated": n_sat,
-            "clipped_fraction": n_sat / n_core if n_core else None, "lights_with_core": int(shows.sum()),
-            "lights_peak_clipped": int(peak_clipped.sum())}
+            "clipped_fraction": n_sat / n_core if n_core else None, "lights_with_core": with_core,
+            "lights_peak_clipped": peak_clipped}
 
 
 def _check_clipped_lobe(checks: SelfChecks, inputs: RecoveryInputs, result: RecoveryResult,

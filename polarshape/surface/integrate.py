@@ -354,13 +354,20 @@ def _system(
     Returns:
         (L (n, n) CSR, symmetric positive definite; rhs (n,)).
     """
-    d = graph.incidence  # (E, n)
-    lap = (d.T @ sp.diags(coeff) @ d).tocsr()  # (n, n) weighted graph Laplacian
-    rhs = d.T @ target  # (n,)
     free = np.ones(graph.n)
     free[graph.pinned] = 0.0
-    # Pinning one node per component removes the constant null space of each component.
-    lap = (sp.diags(free) @ lap @ sp.diags(free) + sp.diags(1.0 - free)).tocsr()
+    # D^T diag(c) D written out (a weighted graph Laplacian: −c_e at (tail, head) and (head, tail), each node's
+    # Σ c on the diagonal), with the pinned nodes' rows and columns replaced by the identity: pinning one node
+    # per component removes the constant null space of each component.
+    keep = (free[graph.tail] * free[graph.head]) > 0  # (E,) edges between two free nodes
+    off = -coeff[keep]
+    diag = np.bincount(graph.tail, coeff, graph.n) + np.bincount(graph.head, coeff, graph.n)  # (n,)
+    diag = np.where(free > 0, diag, 1.0)
+    nodes = np.arange(graph.n)
+    rows = np.concatenate([graph.tail[keep], graph.head[keep], nodes])
+    cols = np.concatenate([graph.head[keep], graph.tail[keep], nodes])
+    lap = sp.csr_matrix((np.concatenate([off, off, diag]), (rows, cols)), shape=(graph.n, graph.n))
+    rhs = graph.incidence.T @ target  # (n,) D^T target
     return lap, rhs * free
 
 

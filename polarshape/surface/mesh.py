@@ -33,6 +33,7 @@ from numpy.typing import NDArray
 from polarshape.cameras import Camera
 from polarshape.checks import to_numpy
 from polarshape.io.atomic import atomic_write_bytes
+from polarshape.io.tables import table_text
 
 logger = logging.getLogger(__name__)
 
@@ -156,17 +157,17 @@ def depth_to_mesh(
     a, b, c, d = a[full], b[full], c[full], d[full]
     faces = np.concatenate([np.stack([a, c, b], axis=1), np.stack([b, c, d], axis=1)])  # (F, 3)
 
-    computed = _grid_normals(points, valid, view)  # (H, W, 3)
     if normals is not None:
         n = to_numpy(normals).astype(np.float64)
         if n.shape != points.shape:
             raise ValueError(f"normals must have shape (H, W, 3) = {points.shape}; got {n.shape}")
-        norm = np.linalg.norm(n, axis=-1, keepdims=True)
-        usable = np.isfinite(norm[..., 0]) & (norm[..., 0] > 1e-6)
-        n = np.where(usable[..., None], n / np.where(usable[..., None], norm, 1.0), computed)
+        n, norm = n[valid], np.linalg.norm(n[valid], axis=-1, keepdims=True)  # (V, 3), (V, 1)
+        usable = np.isfinite(norm[:, 0]) & (norm[:, 0] > 1e-6)
+        vertex_normals = n / np.where(usable[:, None], norm, 1.0)  # (V, 3)
+        if not usable.all():  # the grid's own normals where none is given (computed only then)
+            vertex_normals[~usable] = _grid_normals(points, valid, view)[valid][~usable]
     else:
-        n = computed
-    vertex_normals = n[valid]  # (V, 3)
+        vertex_normals = _grid_normals(points, valid, view)[valid]  # (V, 3)
 
     mesh = trimesh.Trimesh(
         vertices=vertices,
@@ -421,6 +422,37 @@ def mesh_in_frame(mesh: trimesh.Trimesh, frame: MeshFrame) -> trimesh.Trimesh:
     )
 
 
+#: The first line trimesh's OBJ exporter writes (``trimesh.exchange.obj.export_obj``'s ``header``).
+_TRIMESH_OBJ_HEADER = b"# https://github.com/mikedh/trimesh\n"
+
+
+def _obj_bytes(mesh: trimesh.Trimesh) -> bytes:
+    """The OBJ text of ``mesh`` — ``trimesh.exchange.obj.export_obj(mesh, include_normals=True,
+    include_color=True, include_texture=False)``, byte for byte, written with :func:`table_text`
+    (numpy, ~10× faster than trimesh's one ``str.format`` per number at a full frame's 1.4 M triangles).
+
+    Lines: ``v x y z [r g b]`` (colours of a vertex-coloured mesh in [0, 1]), ``vn x y z``, ``f a//a b//b c//c``
+    (1-based), floats with 8 decimals. A mesh this does not cover the same way (no faces, face colours, a name in
+    its metadata) goes through trimesh.
+    """
+    kind = mesh.visual.kind
+    if len(mesh.faces) == 0 or kind not in (None, "vertex") or "name" in mesh.metadata:
+        text = trimesh.exchange.obj.export_obj(mesh, include_normals=True, include_color=True, include_texture=False)
+        return text.encode("utf-8")
+    vertices = np.asarray(mesh.vertices, dtype=np.float64)  # (V, 3)
+    if kind == "vertex" and len(mesh.visual.vertex_colors):
+        rgb = np.asarray(mesh.visual.vertex_colors)[:, :3]  # (V, 3) uint8, as trimesh's to_float divides them
+        vertices = np.column_stack((vertices, rgb.astype(np.float64) / np.iinfo(rgb.dtype).max))  # (V, 6)
+    faces = np.asarray(mesh.faces, dtype=np.int64) + 1  # (F, 3)
+    return b"".join([
+        _TRIMESH_OBJ_HEADER,
+        table_text(vertices, prefix=b"v "),
+        table_text(np.asarray(mesh.vertex_normals, dtype=np.float64), prefix=b"vn "),
+        table_text(np.repeat(faces, 2, axis=1), prefix=b"f ", delimiters=[b"//", b" ", b"//", b" ", b"//"]),
+        b"\n",
+    ])
+
+
 def _header_lines(frame: str, units: str) -> list[str]:
     if units not in ("metres", "superpixels"):
         raise ValueError(f"mesh units must be 'metres' or 'superpixels'; got {units!r}")
@@ -470,8 +502,7 @@ def write_mesh(
         header[2:2] = [f"comment {line}" for line in lines]
         data = "\n".join(header).encode("ascii") + data[end:]
     elif suffix == ".obj":
-        text = trimesh.exchange.obj.export_obj(out, include_normals=True, include_color=True, include_texture=False)
-        data = ("".join(f"# {line}\n" for line in lines) + text).encode("utf-8")
+        data = "".join(f"# {line}\n" for line in lines).encode("utf-8") + _obj_bytes(out)
     else:
         raise ValueError(f"{path}: mesh files must end in .ply or .obj; got {path.suffix!r}")
     written = atomic_write_bytes(path, data, overwrite=overwrite)

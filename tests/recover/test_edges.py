@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 import torch
 
-from polarshape.imaging.pixels import float_to_counts
+from polarshape.imaging.pixels import counts_to_float, float_to_counts
 from polarshape.imaging.stokes import dolp
 from polarshape.io.capture import Capture, parse_capture_spec
 from polarshape.recover.edges import find_albedo_edges
-from polarshape.recover.preprocess import preprocess_capture
+from polarshape.recover.preprocess import preprocess_capture, superpixel_stokes
 
 K, H, W = 4, 8, 12
 
@@ -108,3 +108,16 @@ def test_preprocessing_takes_no_false_polarisation_from_an_albedo_step() -> None
     assert marked is not None and marked.all(0).nonzero().flatten().tolist() == [column]
     assert not edged.valid[:, :, column].any()
     assert float(p_edged[edged.valid[inner]].max()) < 0.01  # every kept observation: the true DoLP 0
+
+
+def test_blocks_next_to_a_step_take_their_own_four_sites_estimate() -> None:
+    """Only the blocks next to the step are read again (polarshape.recover.preprocess reads just those): their
+    Stokes vectors are the super-pixel estimate of the whole frame there, rounded once to float32."""
+    capture, _ = _textured_capture()
+    plain = preprocess_capture(capture, albedo_edges=False, mixed_sigma=None, polarisation_check=False)
+    edged = preprocess_capture(capture, mixed_sigma=None, polarisation_check=False)
+    mosaic = counts_to_float(capture.frames, 12, dtype=torch.float64)  # (K, 2H, 2W)
+    own = superpixel_stokes(mosaic, capture.layout, demosaic="superpixel").to(torch.float32)  # (K, 3, H, W)
+    swapped = (edged.stokes != plain.stokes).any(1)  # (K, H, W)
+    assert int(swapped.any(0).sum()) >= 2 * H  # both columns next to the step
+    assert torch.equal(edged.stokes, torch.where(swapped.unsqueeze(1), own, plain.stokes))

@@ -342,3 +342,17 @@ def test_repair_removes_poisson_self_intersections(tmp_path: Path) -> None:
     assert checks["self_intersecting_pairs"] == 0 and checks["watertight"]
     removed = repaired.metadata["repair"]["triangles_removed"]
     assert 0 < removed < 0.02 * len(repaired.faces)  # slivers only: the surface is kept
+
+
+@pytest.mark.parametrize("coloured", [True, False])
+@pytest.mark.parametrize("frame", ["opencv", "opengl"])
+def test_obj_is_trimesh_export_byte_for_byte(tmp_path: Path, coloured: bool, frame: str) -> None:
+    """mesh.obj is written with numpy (polarshape.io.tables): the bytes of trimesh's exporter after the header."""
+    z, mask, n = _sphere_depth()
+    colours = np.random.default_rng(0).random(z.shape) if coloured else None
+    mesh = depth_to_mesh(z, mask, camera=ORTHO, normals=n, colors=colours)
+    text = write_mesh(mesh, tmp_path / "m.obj", frame=frame).read_bytes()
+    reference = trimesh.exchange.obj.export_obj(mesh_in_frame(mesh, frame), include_normals=True, include_color=True,
+                                                include_texture=False).encode()
+    assert text.endswith(reference)
+    assert text[: len(text) - len(reference)].decode().startswith("# polarshape units: metres")
