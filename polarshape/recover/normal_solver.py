@@ -27,7 +27,7 @@ from polarshape.recover.observations import Observations
 from polarshape.recover.reflectometry import channel_weights, huber, render_parts, solve_albedos
 
 __all__ = [
-    "CHUNK_PIXELS", "NEIGHBOURS_8", "NormalProblem", "huber_delta", "irls_weights", "neighbour_index",
+    "BROYDEN_MAX_STEP", "CHUNK_PIXELS", "NEIGHBOURS_8", "STEP_TOL", "NormalProblem", "huber_delta", "irls_weights", "neighbour_index",
     "normal_information", "normal_jacobian", "propagate_normals", "refine_normals", "tangent_basis", "unit",
 ]
 
@@ -39,6 +39,18 @@ CHUNK_PIXELS = 32768
 NEIGHBOURS_8 = tuple((dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if (dy, dx) != (0, 0))
 
 _COS_5DEG = math.cos(math.radians(5.0))
+
+#: A pixel whose Levenberg–Marquardt step (radians in its tangent plane) is below this, nearly
+#: undamped, has converged (0.0057°: far below the solve's accuracy, ~0.1°).
+STEP_TOL = 1e-4
+
+#: Damping at or below which a step is (nearly) the Gauss–Newton step, so its length measures the
+#: distance to the model's optimum (λ starts at 1e-3 and falls by 3 on each accepted step).
+_LAM_CONVERGED = 1e-2
+
+#: Longest accepted step (radians) after which the Jacobian is updated (Broyden) rather than taken
+#: again by forward differences (3°: the model's curvature changes the Jacobian by a few % over it).
+BROYDEN_MAX_STEP = 0.05
 
 
 def unit(x: Tensor) -> Tensor:
@@ -138,13 +150,25 @@ def _damped_step(jac: Tensor, r0: Tensor, irls: Tensor, lam: Tensor, max_step: f
 
 def _refine_chunk(problem: NormalProblem, normals: Tensor, obs: Observations, *, max_iter: int,
                   step_h: float = 2e-3, max_step: float = 0.25) -> tuple[Tensor, Tensor, Tensor, int]:
-    """Levenberg–Marquardt on the normals (P, 3) of one chunk; returns normals, k_b, loss, iterations."""
+    """Levenberg–Marquardt on the normals (P, 3) of one chunk; returns normals, k_b, loss, iterations.
+
+    The Jacobian is taken by forward differences (2 evaluations) at the start and after a rejected
+    step; after an accepted step of at most :data:`BROYDEN_MAX_STEP` it is updated from the trial's
+    own residual (Broyden's rank-1 update, no evaluation: exact along the step, the other direction
+    off by the step times the curvature — the forward difference's own order at these steps).
+    A pixel leaves the active set as soon as its (nearly undamped) step is below :data:`STEP_TOL`:
+    its trial is not evaluated (the normal is within the step of the model's optimum). Otherwise it
+    leaves after two iterations without progress."""
     p = normals.shape[0]
     dt, dev = normals.dtype, normals.device
     normals = normals.clone()
     with torch.no_grad():
         r, k_b = problem.residual(normals, obs)
         loss = problem.loss(r)
+        r = r.reshape(p, -1)  # (P, M)
+        jac3 = torch.zeros(p, r.shape[1], 3, dtype=dt, device=dev)  # (P, M, 3): dr/dN in the tangent plane
+        have_jac = torch.zeros(p, dtype=torch.bool, device=dev)  # jac3 usable at the pixel's normal
+        exact_jac = torch.zeros(p, dtype=torch.bool, device=dev)  # jac3 by forward differences at it
         lam = torch.full((p,), 1e-3, dtype=dt, device=dev)
         small = torch.zeros(p, dtype=torch.int64, device=dev)
         active = torch.ones(p, dtype=torch.bool, device=dev)
@@ -155,15 +179,38 @@ def _refine_chunk(problem: NormalProblem, normals: Tensor, obs: Observations, *,
                 break
             sub = obs.select(idx)
             n = normals[idx]
-            r0 = r[idx].reshape(idx.numel(), -1)  # (A, M)
-            jac, t1, t2 = normal_jacobian(problem, n, r0, sub, step_h)
+            r0 = r[idx]  # (A, M)
+            fd = torch.nonzero(~have_jac[idx]).flatten()
+            if fd.numel():
+                jac_fd, t1, t2 = normal_jacobian(problem, n[fd], r0[fd], sub.select(fd), step_h)
+                jac3[idx[fd]] = jac_fd @ torch.stack([t1, t2], -2)  # (F, M, 2) @ (F, 2, 3)
+                have_jac[idx[fd]] = True
+                exact_jac[idx[fd]] = True
+            t1, t2 = tangent_basis(n)
+            jac = jac3[idx] @ torch.stack([t1, t2], -1)  # (A, M, 2)
             step = _damped_step(jac, r0, irls_weights(problem, r0), lam[idx], max_step)
+            converged = (step.norm(dim=-1) < STEP_TOL) & (lam[idx] <= _LAM_CONVERGED)
+            active[idx[converged]] = False
+            go = torch.nonzero(~converged).flatten()
+            if go.numel() < idx.numel():  # only the pixels still moving try a step
+                idx, step, n, t1, t2, r0, jac = idx[go], step[go], n[go], t1[go], t2[go], r0[go], jac[go]
+                sub = sub.select(go)
+            if idx.numel() == 0:
+                break
             trial = unit(n + step[:, :1] * t1 + step[:, 1:] * t2)
             facing = (trial * sub.view).sum(-1) > 0
             rt, kbt = problem.residual(trial, sub)
             lt = problem.loss(rt)
+            rt = rt.reshape(r0.shape)
             accept = facing & (lt < loss[idx]) & torch.isfinite(lt)
+            # Broyden: the Jacobian at the accepted trial, exact along the chord d = trial − n
+            d = trial - n  # (A, 3)
+            miss = (rt - r0) - (jac3[idx] @ d.unsqueeze(-1)).squeeze(-1)  # (A, M)
+            upd = miss.unsqueeze(-1) * (d / (d * d).sum(-1, keepdim=True).clamp_min(1e-30)).unsqueeze(1)
             ai = idx[accept]
+            jac3[ai] += upd[accept]
+            exact_jac[ai] = False
+            have_jac[idx] = torch.where(accept, step.norm(dim=-1) <= BROYDEN_MAX_STEP, exact_jac[idx])
             normals[ai] = trial[accept]
             r[ai] = rt[accept]
             k_b[ai] = kbt[accept]
@@ -171,9 +218,9 @@ def _refine_chunk(problem: NormalProblem, normals: Tensor, obs: Observations, *,
             loss[ai] = lt[accept]
             lam[idx] = torch.where(accept, (lam[idx] / 3).clamp_min(1e-7), (lam[idx] * 4).clamp_max(1e7))
             # frozen after two iterations without progress (active set)
-            tiny_step = (step.norm(dim=-1) < 1e-4) | (accept & (rel < 1e-7)) | (~accept & (lam[idx] > 1e6))
+            tiny_step = (step.norm(dim=-1) < STEP_TOL) | (accept & (rel < 1e-7)) | (~accept & (lam[idx] > 1e6))
             small[idx] = torch.where(tiny_step, small[idx] + 1, torch.zeros_like(small[idx]))
-            active = small < 2
+            active[idx] = small[idx] < 2
     return normals, k_b, loss, it
 
 
