@@ -30,7 +30,7 @@ import polarshape.recover.reflectometry as reflectometry  # noqa: E402
 
 #: call sites, innermost first: the first of these names on the stack above render_parts names the call
 SITES = (
-    ("normal_jacobian", "jacobian"), ("_try_neighbour", "neighbour_try"), ("propagate_normals", "polish"),
+    ("normal_jacobian", "jacobian"), ("_jacobian_and_albedo", "jacobian"), ("_try_neighbour", "neighbour_try"), ("propagate_normals", "polish"),
     ("normal_information", "information"), ("_refine_chunk", "lm_trial"), ("profile_alpha", "profile_alpha"),
     ("joint_solve", "joint"), ("nested_kappa", "joint"), ("fit_reflectance", "material_fit"),
     ("objective", "material_fit"), ("fit_albedo_scale", "albedo_scale"), ("fit_level", "level_other"),

@@ -67,7 +67,7 @@ logger = logging.getLogger(__name__)
 
 __all__ = [
     "FMBRDFState", "KnownMaterial", "SolveLog", "build_pyramid", "fit_albedo_scale", "fit_level", "profile_alpha",
-    "solve_fmbrdf",
+    "solve_fmbrdf", "upsample_normals",
 ]
 
 
@@ -446,14 +446,15 @@ def build_pyramid(inputs: RecoveryInputs, options: RecoveryOptions) -> list[Reco
     return levels
 
 
-def _start_from(coarser: FMBRDFState, fallback: Tensor) -> Tensor:
-    """Normals (H, W, 3) of the next finer level: the coarser solution upsampled bilinearly on the
+def upsample_normals(coarser: Tensor, fallback: Tensor) -> Tensor:
+    """Normals (H, W, 3) of the next finer level from a coarser level's normals ``coarser`` (h, w, 3),
+    NaN where it has none (h = H // 2, w = W // 2): upsampled bilinearly on the
     sphere of normals (the 2×2 pooling's geometry, weighted by where the coarser level has a normal,
     then made unit), the ``fallback`` (Lambertian normals of this level) where no coarser normal is
     near. Bilinear, not nearest: the start is off by the surface's curvature squared instead of half
     a coarse pixel's turn, so most pixels of a smooth surface converge in one step."""
-    has = coarser.normals.isfinite().all(-1)  # (h, w)
-    up = torch.nan_to_num(coarser.normals, nan=0.0).permute(2, 0, 1).unsqueeze(0)
+    has = coarser.isfinite().all(-1)  # (h, w)
+    up = torch.nan_to_num(coarser, nan=0.0).permute(2, 0, 1).unsqueeze(0)
     up = torch.cat([up, has.to(up.dtype)[None, None]], 1)  # (1, 4, h, w): weighted normals and weights
     up = F.interpolate(up, scale_factor=2, mode="bilinear", align_corners=False)[0].permute(1, 2, 0)
     h, w = fallback.shape[:2]
@@ -492,7 +493,7 @@ def solve_fmbrdf(inputs: RecoveryInputs, initial_normals: Tensor, options: Recov
         log.skipped.append("material: fixed by recovery.material (ior, alpha, beta, kappa not fitted; albedos "
                            "solved in closed form; no kappa test)")
     for depth in range(len(levels) - 1, -1, -1):
-        start = initial[depth] if state is None else _start_from(state, initial[depth])
+        start = initial[depth] if state is None else upsample_normals(state.normals, initial[depth])
         state = fit_level(levels[depth], start, first if state is None else state.params, options,
                           fit_globals=state is None, level=depth, seed=seed, progress=progress, log=log,
                           material_use=use)

@@ -27,7 +27,7 @@ from polarshape.recover.observations import Observations
 from polarshape.recover.reflectometry import channel_weights, huber, render_parts, solve_albedos
 
 __all__ = [
-    "BROYDEN_MAX_STEP", "CHUNK_PIXELS", "NEIGHBOURS_8", "STEP_TOL", "NormalProblem", "huber_delta", "irls_weights", "neighbour_index",
+    "BROYDEN_MAX_STEP", "CHUNK_PIXELS", "LINEAR_STEP", "NEIGHBOURS_8", "STEP_TOL", "NormalProblem", "huber_delta", "irls_weights", "neighbour_index",
     "normal_information", "normal_jacobian", "propagate_normals", "refine_normals", "tangent_basis", "unit",
 ]
 
@@ -47,6 +47,11 @@ STEP_TOL = 1e-4
 #: Damping at or below which a step is (nearly) the Gauss–Newton step, so its length measures the
 #: distance to the model's optimum (λ starts at 1e-3 and falls by 3 on each accepted step).
 _LAM_CONVERGED = 1e-2
+
+#: A (nearly undamped) step shorter than this (radians; 0.17°) is the pixel's last: taken on the
+#: linear model, not evaluated (its error, the residual's curvature times the step squared, is
+#: ~1e-5 rad).
+LINEAR_STEP = 3e-3
 
 #: Longest accepted step (radians) after which the Jacobian is updated (Broyden) rather than taken
 #: again by forward differences (3°: the model's curvature changes the Jacobian by a few % over it).
@@ -119,9 +124,22 @@ class NormalProblem:
 def normal_jacobian(problem: NormalProblem, n: Tensor, r0: Tensor, obs: Observations, step_h: float
                     ) -> tuple[Tensor, Tensor, Tensor]:
     """Forward-difference Jacobian (A, M, 2) of the flat residuals r0 (A, M) in the tangent basis (t1, t2)."""
+    jac, _, t1, t2 = _jacobian_and_albedo(problem, n, r0, None, obs, step_h)
+    return jac, t1, t2
+
+
+def _jacobian_and_albedo(problem: NormalProblem, n: Tensor, r0: Tensor, kb0: Tensor | None, obs: Observations,
+                         step_h: float) -> tuple[Tensor, Tensor | None, Tensor, Tensor]:
+    """:func:`normal_jacobian` and, from the same evaluations, the derivative (A, 2) of the closed-form
+    k_b (A,) (``kb0`` at ``n``; None: not wanted)."""
     t1, t2 = tangent_basis(n)
-    cols = [(problem.residual(unit(n + step_h * t), obs)[0].reshape(r0.shape) - r0) / step_h for t in (t1, t2)]
-    return torch.stack(cols, -1), t1, t2
+    cols, kb_cols = [], []
+    for t in (t1, t2):
+        r, kb = problem.residual(unit(n + step_h * t), obs)
+        cols.append((r.reshape(r0.shape) - r0) / step_h)
+        if kb0 is not None:
+            kb_cols.append((kb - kb0) / step_h)
+    return torch.stack(cols, -1), None if kb0 is None else torch.stack(kb_cols, -1), t1, t2
 
 
 def irls_weights(problem: NormalProblem, r0: Tensor) -> Tensor:
@@ -156,17 +174,20 @@ def _refine_chunk(problem: NormalProblem, normals: Tensor, obs: Observations, *,
     step; after an accepted step of at most :data:`BROYDEN_MAX_STEP` it is updated from the trial's
     own residual (Broyden's rank-1 update, no evaluation: exact along the step, the other direction
     off by the step times the curvature — the forward difference's own order at these steps).
-    A pixel leaves the active set as soon as its (nearly undamped) step is below :data:`STEP_TOL`:
-    its trial is not evaluated (the normal is within the step of the model's optimum). Otherwise it
-    leaves after two iterations without progress."""
+    A pixel leaves the active set as soon as its (nearly undamped) step is below :data:`LINEAR_STEP`:
+    that last step is taken on the linear model (residual, k_b and loss predicted, not evaluated;
+    off by the curvature times the step squared, < 0.001° here). Otherwise it leaves after two
+    iterations without progress."""
     p = normals.shape[0]
     dt, dev = normals.dtype, normals.device
     normals = normals.clone()
     with torch.no_grad():
         r, k_b = problem.residual(normals, obs)
         loss = problem.loss(r)
+        shape = r.shape[1:]
         r = r.reshape(p, -1)  # (P, M)
         jac3 = torch.zeros(p, r.shape[1], 3, dtype=dt, device=dev)  # (P, M, 3): dr/dN in the tangent plane
+        kb3 = torch.zeros(p, 3, dtype=dt, device=dev)  # (P, 3): dk_b/dN in the tangent plane
         have_jac = torch.zeros(p, dtype=torch.bool, device=dev)  # jac3 usable at the pixel's normal
         exact_jac = torch.zeros(p, dtype=torch.bool, device=dev)  # jac3 by forward differences at it
         lam = torch.full((p,), 1e-3, dtype=dt, device=dev)
@@ -182,18 +203,32 @@ def _refine_chunk(problem: NormalProblem, normals: Tensor, obs: Observations, *,
             r0 = r[idx]  # (A, M)
             fd = torch.nonzero(~have_jac[idx]).flatten()
             if fd.numel():
-                jac_fd, t1, t2 = normal_jacobian(problem, n[fd], r0[fd], sub.select(fd), step_h)
-                jac3[idx[fd]] = jac_fd @ torch.stack([t1, t2], -2)  # (F, M, 2) @ (F, 2, 3)
+                jac_fd, kb_fd, t1, t2 = _jacobian_and_albedo(problem, n[fd], r0[fd], k_b[idx[fd]], sub.select(fd),
+                                                             step_h)
+                basis = torch.stack([t1, t2], -2)  # (F, 2, 3)
+                jac3[idx[fd]] = jac_fd @ basis
+                kb3[idx[fd]] = (kb_fd.unsqueeze(1) @ basis).squeeze(1)
                 have_jac[idx[fd]] = True
                 exact_jac[idx[fd]] = True
             t1, t2 = tangent_basis(n)
             jac = jac3[idx] @ torch.stack([t1, t2], -1)  # (A, M, 2)
             step = _damped_step(jac, r0, irls_weights(problem, r0), lam[idx], max_step)
-            converged = (step.norm(dim=-1) < STEP_TOL) & (lam[idx] <= _LAM_CONVERGED)
-            active[idx[converged]] = False
-            go = torch.nonzero(~converged).flatten()
+            linear = (step.norm(dim=-1) < LINEAR_STEP) & (lam[idx] <= _LAM_CONVERGED)
+            li = torch.nonzero(linear).flatten()
+            if li.numel():  # converged: the last step on the linear model
+                d3 = step[li, :1] * t1[li] + step[li, 1:] * t2[li]  # (L, 3)
+                last = unit(n[li] + d3)
+                ok = (last * sub.view[li]).sum(-1) > 0
+                pi = idx[li][ok]
+                r_lin = r0[li] + (jac[li] @ step[li].unsqueeze(-1)).squeeze(-1)
+                normals[pi] = last[ok]
+                r[pi] = r_lin[ok]
+                k_b[pi] = k_b[pi] + (kb3[pi] * d3[ok]).sum(-1)
+                loss[pi] = problem.loss(r_lin[ok].reshape(-1, *shape))
+                active[idx[li]] = False
+            go = torch.nonzero(~linear).flatten()
             if go.numel() < idx.numel():  # only the pixels still moving try a step
-                idx, step, n, t1, t2, r0, jac = idx[go], step[go], n[go], t1[go], t2[go], r0[go], jac[go]
+                idx, step, n, t1, t2, r0 = idx[go], step[go], n[go], t1[go], t2[go], r0[go]
                 sub = sub.select(go)
             if idx.numel() == 0:
                 break
@@ -203,12 +238,14 @@ def _refine_chunk(problem: NormalProblem, normals: Tensor, obs: Observations, *,
             lt = problem.loss(rt)
             rt = rt.reshape(r0.shape)
             accept = facing & (lt < loss[idx]) & torch.isfinite(lt)
-            # Broyden: the Jacobian at the accepted trial, exact along the chord d = trial − n
+            # Broyden: the Jacobians at the accepted trial, exact along the chord d = trial − n
             d = trial - n  # (A, 3)
+            dn = d / (d * d).sum(-1, keepdim=True).clamp_min(1e-30)
             miss = (rt - r0) - (jac3[idx] @ d.unsqueeze(-1)).squeeze(-1)  # (A, M)
-            upd = miss.unsqueeze(-1) * (d / (d * d).sum(-1, keepdim=True).clamp_min(1e-30)).unsqueeze(1)
+            miss_kb = (kbt - k_b[idx]) - (kb3[idx] * d).sum(-1)  # (A,)
             ai = idx[accept]
-            jac3[ai] += upd[accept]
+            jac3[ai] += (miss.unsqueeze(-1) * dn.unsqueeze(1))[accept]
+            kb3[ai] += (miss_kb.unsqueeze(-1) * dn)[accept]
             exact_jac[ai] = False
             have_jac[idx] = torch.where(accept, step.norm(dim=-1) <= BROYDEN_MAX_STEP, exact_jac[idx])
             normals[ai] = trial[accept]
