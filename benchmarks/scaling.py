@@ -125,7 +125,10 @@ def run_case(capture: Path, out: Path, device: str, model: str | None, max_outer
         "mask_px": params["capture"]["mask_pixels"], "model": params["model"], "device": params["device"],
         "stages": stages, "total": t["total"],
         "mean_err_deg": params["metrics"].get("normals", {}).get("mean_deg", math.nan),
+        "median_err_deg": params["metrics"].get("normals", {}).get("median_deg", math.nan),
         "max_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,  # KiB on Linux
+        # the process's CPU seconds (imports and the run; on a shared box a fairer clock than the wall)
+        "cpu_s": resource.getrusage(resource.RUSAGE_SELF).ru_utime + resource.getrusage(resource.RUSAGE_SELF).ru_stime,
         "cuda_peak_mb": torch.cuda.max_memory_allocated() / 2**20 if params["device"].startswith("cuda") else None,
         "threads": torch.get_num_threads(),
     }

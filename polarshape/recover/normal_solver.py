@@ -166,6 +166,11 @@ def _damped_step(jac: Tensor, r0: Tensor, irls: Tensor, lam: Tensor, max_step: f
     return step * (max_step / norm.clamp_min(max_step)).unsqueeze(-1)
 
 
+def _subset(obs: Observations, index: Tensor) -> Observations:
+    """``obs.select(index)`` for sorted unique indices (A,) — ``obs`` itself, not a copy, when they are all."""
+    return obs if index.numel() == obs.view.shape[0] else obs.select(index)
+
+
 def _refine_chunk(problem: NormalProblem, normals: Tensor, obs: Observations, *, max_iter: int,
                   step_h: float = 2e-3, max_step: float = 0.25) -> tuple[Tensor, Tensor, Tensor, int]:
     """Levenberg–Marquardt on the normals (P, 3) of one chunk; returns normals, k_b, loss, iterations.
@@ -198,12 +203,12 @@ def _refine_chunk(problem: NormalProblem, normals: Tensor, obs: Observations, *,
             idx = torch.nonzero(active).flatten()
             if idx.numel() == 0:
                 break
-            sub = obs.select(idx)
+            sub = _subset(obs, idx)
             n = normals[idx]
             r0 = r[idx]  # (A, M)
             fd = torch.nonzero(~have_jac[idx]).flatten()
             if fd.numel():
-                jac_fd, kb_fd, t1, t2 = _jacobian_and_albedo(problem, n[fd], r0[fd], k_b[idx[fd]], sub.select(fd),
+                jac_fd, kb_fd, t1, t2 = _jacobian_and_albedo(problem, n[fd], r0[fd], k_b[idx[fd]], _subset(sub, fd),
                                                              step_h)
                 basis = torch.stack([t1, t2], -2)  # (F, 2, 3)
                 jac3[idx[fd]] = jac_fd @ basis
@@ -229,7 +234,7 @@ def _refine_chunk(problem: NormalProblem, normals: Tensor, obs: Observations, *,
             go = torch.nonzero(~linear).flatten()
             if go.numel() < idx.numel():  # only the pixels still moving try a step
                 idx, step, n, t1, t2, r0 = idx[go], step[go], n[go], t1[go], t2[go], r0[go]
-                sub = sub.select(go)
+                sub = _subset(sub, go)
             if idx.numel() == 0:
                 break
             trial = unit(n + step[:, :1] * t1 + step[:, 1:] * t2)
