@@ -9,8 +9,8 @@ b. *normals*: per-pixel Levenberg–Marquardt (:func:`polarshape.recover.normal_
    then neighbour propagation (:func:`polarshape.recover.normal_solver.propagate_normals`).
 
 The alternation stops when the loss changed by ≤ 0.1 % over the last two outer iterations (a
-window, not one step) or after ``max_outer_iterations``. Finer levels start from the upsampled
-normals and run step b only. With ``fit_kappa`` None, κ is tested once the coarse level has
+window, not one step) or after ``max_outer_iterations``. Finer levels start from the coarser normals
+upsampled bilinearly (:func:`upsample_normals`) and run step b only. With ``fit_kappa`` None, κ is tested once the coarse level has
 converged: a cheap probe on coarse tables, then a fit; kept only if it lowers the loss by ≥ 1 %
 (else κ = 0, the separable fast path, and the skip recorded).
 

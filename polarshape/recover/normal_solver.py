@@ -4,8 +4,12 @@ Each pixel's normal has 2 degrees of freedom (a step in its tangent plane, renor
 albedo k_b is solved in closed form inside the residual (variable projection,
 :func:`polarshape.recover.reflectometry.solve_albedos`). The loss is Huber on channel-weighted Stokes
 residuals, minimised by iteratively reweighted least squares with per-pixel damping and
-acceptance; the Jacobian is taken by forward differences of the full model. Pixels are independent,
-so they are solved in chunks (less memory traffic) and frozen once they stop moving (active set).
+acceptance; the Jacobian is taken by forward differences of the full model, then updated from each
+accepted trial (Broyden) instead of taken again. Pixels are independent, so they are solved in chunks
+(less memory traffic) and frozen once they stop moving (active set): a pixel whose step is below
+:data:`LINEAR_STEP` takes it on the linear model and stops, so a pixel started near its optimum (a
+finer pyramid level's bilinear start) costs its residual and two Jacobian columns — 3 evaluations of
+the model instead of the 7–10 of an LM that evaluates each trial and confirms with a second one.
 
 :func:`propagate_normals` moves pixels out of per-pixel local minima through their neighbours;
 :func:`normal_information` gives each pixel's Gauss–Newton information for the spatial prior
