@@ -53,8 +53,7 @@ STEP_TOL = 1e-4
 _LAM_CONVERGED = 1e-2
 
 #: A (nearly undamped) step shorter than this (radians; 0.17°) is the pixel's last: taken on the
-#: linear model, not evaluated (its error, the residual's curvature times the step squared, is
-#: ~1e-5 rad).
+#: linear model, not evaluated (its error is the residual's curvature times the step squared).
 LINEAR_STEP = 3e-3
 
 #: Longest accepted step (radians) after which the Jacobian is updated (Broyden) rather than taken
@@ -185,8 +184,8 @@ def _refine_chunk(problem: NormalProblem, normals: Tensor, obs: Observations, *,
     off by the step times the curvature — the forward difference's own order at these steps).
     A pixel leaves the active set as soon as its (nearly undamped) step is below :data:`LINEAR_STEP`:
     that last step is taken on the linear model (residual, k_b and loss predicted, not evaluated;
-    off by the curvature times the step squared, < 0.001° here). Otherwise it leaves after two
-    iterations without progress."""
+    off by the residual's curvature times the step squared — measured: mean and median normal
+    errors unchanged to 0.0003°, README). Otherwise it leaves after two iterations without progress."""
     p = normals.shape[0]
     dt, dev = normals.dtype, normals.device
     normals = normals.clone()
