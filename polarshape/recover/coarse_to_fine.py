@@ -9,8 +9,8 @@ b. *normals*: per-pixel Levenberg–Marquardt (:func:`polarshape.recover.normal_
    then neighbour propagation (:func:`polarshape.recover.normal_solver.propagate_normals`).
 
 The alternation stops when the loss changed by ≤ 0.1 % over the last two outer iterations (a
-window, not one step) or after ``max_outer_iterations``. Finer levels start from the upsampled
-normals and run step b only. With ``fit_kappa`` None, κ is tested once the coarse level has
+window, not one step) or after ``max_outer_iterations``. Finer levels start from the coarser normals
+upsampled bilinearly (:func:`upsample_normals`) and run step b only. With ``fit_kappa`` None, κ is tested once the coarse level has
 converged: a cheap probe on coarse tables, then a fit; kept only if it lowers the loss by ≥ 1 %
 (else κ = 0, the separable fast path, and the skip recorded).
 
@@ -67,7 +67,7 @@ logger = logging.getLogger(__name__)
 
 __all__ = [
     "FMBRDFState", "KnownMaterial", "SolveLog", "build_pyramid", "fit_albedo_scale", "fit_level", "profile_alpha",
-    "solve_fmbrdf",
+    "solve_fmbrdf", "upsample_normals",
 ]
 
 
@@ -446,16 +446,23 @@ def build_pyramid(inputs: RecoveryInputs, options: RecoveryOptions) -> list[Reco
     return levels
 
 
-def _start_from(coarser: FMBRDFState, fallback: Tensor) -> Tensor:
-    """Normals (H, W, 3) of the next finer level: the coarser solution upsampled (nearest), the
-    ``fallback`` (Lambertian normals of this level) where the coarser level has none."""
-    up = torch.nan_to_num(coarser.normals.permute(2, 0, 1).unsqueeze(0), nan=0.0)
-    up = F.interpolate(up, scale_factor=2, mode="nearest")[0].permute(1, 2, 0)
+def upsample_normals(coarser: Tensor, fallback: Tensor) -> Tensor:
+    """Normals (H, W, 3) of the next finer level from a coarser level's normals ``coarser`` (h, w, 3),
+    NaN where it has none (h = H // 2, w = W // 2): upsampled bilinearly on the
+    sphere of normals (the 2×2 pooling's geometry, weighted by where the coarser level has a normal,
+    then made unit), the ``fallback`` (Lambertian normals of this level) where no coarser normal is
+    near. Bilinear, not nearest: the start is off by the surface's curvature squared instead of half
+    a coarse pixel's turn, so most pixels of a smooth surface converge in one step."""
+    has = coarser.isfinite().all(-1)  # (h, w)
+    up = torch.nan_to_num(coarser, nan=0.0).permute(2, 0, 1).unsqueeze(0)
+    up = torch.cat([up, has.to(up.dtype)[None, None]], 1)  # (1, 4, h, w): weighted normals and weights
+    up = F.interpolate(up, scale_factor=2, mode="bilinear", align_corners=False)[0].permute(1, 2, 0)
     h, w = fallback.shape[:2]
     full = fallback.clone()
     hh, ww = min(h, up.shape[0]), min(w, up.shape[1])
-    ok = up[:hh, :ww].norm(dim=-1) > 0.5
-    full[:hh, :ww][ok] = unit(up[:hh, :ww][ok])
+    up = up[:hh, :ww]
+    ok = (up[..., 3] > 1e-3) & (up[..., :3].norm(dim=-1) > 1e-3 * up[..., 3])
+    full[:hh, :ww][ok] = unit(up[..., :3][ok])
     return full
 
 
@@ -486,7 +493,7 @@ def solve_fmbrdf(inputs: RecoveryInputs, initial_normals: Tensor, options: Recov
         log.skipped.append("material: fixed by recovery.material (ior, alpha, beta, kappa not fitted; albedos "
                            "solved in closed form; no kappa test)")
     for depth in range(len(levels) - 1, -1, -1):
-        start = initial[depth] if state is None else _start_from(state, initial[depth])
+        start = initial[depth] if state is None else upsample_normals(state.normals, initial[depth])
         state = fit_level(levels[depth], start, first if state is None else state.params, options,
                           fit_globals=state is None, level=depth, seed=seed, progress=progress, log=log,
                           material_use=use)

@@ -54,7 +54,7 @@ from polarshape.brdf.params import FMBRDFParams
 from polarshape.recover.coarse_to_fine import (
     FMBRDFState, KnownMaterial, SolveLog, fit_albedo_scale, solve_fmbrdf,
 )
-from polarshape.recover.normal_solver import CHUNK_PIXELS, NormalProblem, huber_delta, refine_normals
+from polarshape.recover.normal_solver import NormalProblem, huber_delta, refine_normals
 from polarshape.recover.observations import Observations, RecoveryInputs, flatten_observations
 from polarshape.recover.options import MAX_MATERIALS, RecoveryOptions
 from polarshape.recover.reflectometry import ALPHA_GRID, fit_reflectance
@@ -79,6 +79,10 @@ POTTS_WEIGHT = 2.0
 MIN_PART_FRACTION = 0.03
 #: Most pixels of the lattice the split and the model choice see.
 SELECTION_PIXELS = 1024
+#: Most pixels (a lattice) whose one-material residuals give the Huber δ and σ² of the selection: the
+#: residuals' robust σ is a median over ~K·3 values a pixel, so a lattice gives it to < 1 % without
+#: rendering every pixel of a large frame again.
+DELTA_PIXELS = 16384
 #: Parameters a material adds to the model (μ, α, β, κ, k_s): the BIC term's count.
 MATERIAL_PARAMETERS = 5
 #: A split is kept only when it lowers the held-out-light negative log-likelihood
@@ -226,6 +230,15 @@ def _lattice(mask: Tensor, most: int) -> tuple[slice, slice]:
     """Every s-th row and column, s the smallest stride leaving ≤ ``most`` mask pixels."""
     stride = max(1, math.ceil(math.sqrt(int(mask.sum()) / most)))
     return slice(0, None, stride), slice(0, None, stride)
+
+
+def _lattice_observations(inputs: RecoveryInputs, rows: slice, cols: slice) -> tuple[Tensor, Observations]:
+    """The lattice's mask (h, w) and the observations of its mask pixels (row-major)."""
+    lat = inputs.mask[rows, cols]
+    lat_inputs = replace(inputs, stokes=inputs.stokes[..., rows, cols], valid=inputs.valid[:, rows, cols],
+                         saturated=inputs.saturated[:, rows, cols], mask=lat, lights=inputs.lights[:, rows, cols],
+                         irradiance=inputs.irradiance[:, rows, cols], view=inputs.view[rows, cols])
+    return lat, flatten_observations(lat_inputs, lat)
 
 
 @dataclass
@@ -549,24 +562,17 @@ def select_materials(inputs: RecoveryInputs, state: FMBRDFState, options: Recove
     """
     log = SolveLog() if log is None else log
     mask = inputs.mask
-    obs_all = flatten_observations(inputs, mask)
     p1 = state.params
     tables: dict = {}
-    problem = NormalProblem.build(material_tables(p1, mask.device, tables), obs_all.stokes, p1.k_s,
+    rows, cols = _lattice(mask, DELTA_PIXELS)  # δ from a lattice's residuals (not every pixel rendered again)
+    lat_d, obs_d = _lattice_observations(inputs, rows, cols)
+    problem = NormalProblem.build(material_tables(p1, mask.device, tables), obs_d.stokes, p1.k_s,
                                   options.per_pixel_albedo, p1.k_b, inputs.has_polarisation, 1.0)
-    normals = state.normals[mask]  # (P, 3)
-    chunks = [torch.arange(a, min(a + CHUNK_PIXELS, normals.shape[0]), device=normals.device)
-              for a in range(0, normals.shape[0], CHUNK_PIXELS)]  # (P, K, 3) temporaries of a chunk only
-    residual = torch.cat([problem.residual(normals[i], obs_all.select(i))[0] for i in chunks]) if chunks else \
-        problem.residual(normals, obs_all)[0]
-    delta = huber_delta(obs_all, inputs.noise_std, residual)
+    delta = huber_delta(obs_d, inputs.noise_std, problem.residual(state.normals[rows, cols][lat_d], obs_d)[0])
     sigma2 = (delta / 3.0) ** 2
     rows, cols = _lattice(mask, SELECTION_PIXELS)
-    lat = mask[rows, cols]
-    lat_inputs = replace(inputs, stokes=inputs.stokes[..., rows, cols], valid=inputs.valid[:, rows, cols],
-                         saturated=inputs.saturated[:, rows, cols], mask=lat, lights=inputs.lights[:, rows, cols],
-                         irradiance=inputs.irradiance[:, rows, cols], view=inputs.view[rows, cols])
-    grid = _Grid(lat, flatten_observations(lat_inputs, lat), state.normals[rows, cols][lat],
+    lat, lat_obs = _lattice_observations(inputs, rows, cols)
+    grid = _Grid(lat, lat_obs, state.normals[rows, cols][lat],
                  options.per_pixel_albedo, inputs.has_polarisation, delta, sigma2, options, seed, tables)
     materials, records = _select(grid, p1, wanted, log)
     return materials, records, delta, sigma2

@@ -4,8 +4,12 @@ Each pixel's normal has 2 degrees of freedom (a step in its tangent plane, renor
 albedo k_b is solved in closed form inside the residual (variable projection,
 :func:`polarshape.recover.reflectometry.solve_albedos`). The loss is Huber on channel-weighted Stokes
 residuals, minimised by iteratively reweighted least squares with per-pixel damping and
-acceptance; the Jacobian is taken by forward differences of the full model. Pixels are independent,
-so they are solved in chunks (less memory traffic) and frozen once they stop moving (active set).
+acceptance; the Jacobian is taken by forward differences of the full model, then updated from each
+accepted trial (Broyden) instead of taken again. Pixels are independent, so they are solved in chunks
+(less memory traffic) and frozen once they stop moving (active set): a pixel whose step is below
+:data:`LINEAR_STEP` takes it on the linear model and stops, so a pixel started near its optimum (a
+finer pyramid level's bilinear start) costs its residual and two Jacobian columns — 3 evaluations of
+the model instead of the 7–10 of an LM that evaluates each trial and confirms with a second one.
 
 :func:`propagate_normals` moves pixels out of per-pixel local minima through their neighbours;
 :func:`normal_information` gives each pixel's Gauss–Newton information for the spatial prior
@@ -27,7 +31,7 @@ from polarshape.recover.observations import Observations
 from polarshape.recover.reflectometry import channel_weights, huber, render_parts, solve_albedos
 
 __all__ = [
-    "CHUNK_PIXELS", "NEIGHBOURS_8", "NormalProblem", "huber_delta", "irls_weights", "neighbour_index",
+    "BROYDEN_MAX_STEP", "CHUNK_PIXELS", "LINEAR_STEP", "NEIGHBOURS_8", "STEP_TOL", "NormalProblem", "huber_delta", "irls_weights", "neighbour_index",
     "normal_information", "normal_jacobian", "propagate_normals", "refine_normals", "tangent_basis", "unit",
 ]
 
@@ -39,6 +43,22 @@ CHUNK_PIXELS = 32768
 NEIGHBOURS_8 = tuple((dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if (dy, dx) != (0, 0))
 
 _COS_5DEG = math.cos(math.radians(5.0))
+
+#: A pixel whose Levenberg–Marquardt step (radians in its tangent plane) is below this, nearly
+#: undamped, has converged (0.0057°: far below the solve's accuracy, ~0.1°).
+STEP_TOL = 1e-4
+
+#: Damping at or below which a step is (nearly) the Gauss–Newton step, so its length measures the
+#: distance to the model's optimum (λ starts at 1e-3 and falls by 3 on each accepted step).
+_LAM_CONVERGED = 1e-2
+
+#: A (nearly undamped) step shorter than this (radians; 0.17°) is the pixel's last: taken on the
+#: linear model, not evaluated (its error is the residual's curvature times the step squared).
+LINEAR_STEP = 3e-3
+
+#: Longest accepted step (radians) after which the Jacobian is updated (Broyden) rather than taken
+#: again by forward differences (3°: the model's curvature changes the Jacobian by a few % over it).
+BROYDEN_MAX_STEP = 0.05
 
 
 def unit(x: Tensor) -> Tensor:
@@ -107,9 +127,22 @@ class NormalProblem:
 def normal_jacobian(problem: NormalProblem, n: Tensor, r0: Tensor, obs: Observations, step_h: float
                     ) -> tuple[Tensor, Tensor, Tensor]:
     """Forward-difference Jacobian (A, M, 2) of the flat residuals r0 (A, M) in the tangent basis (t1, t2)."""
+    jac, _, t1, t2 = _jacobian_and_albedo(problem, n, r0, None, obs, step_h)
+    return jac, t1, t2
+
+
+def _jacobian_and_albedo(problem: NormalProblem, n: Tensor, r0: Tensor, kb0: Tensor | None, obs: Observations,
+                         step_h: float) -> tuple[Tensor, Tensor | None, Tensor, Tensor]:
+    """:func:`normal_jacobian` and, from the same evaluations, the derivative (A, 2) of the closed-form
+    k_b (A,) (``kb0`` at ``n``; None: not wanted)."""
     t1, t2 = tangent_basis(n)
-    cols = [(problem.residual(unit(n + step_h * t), obs)[0].reshape(r0.shape) - r0) / step_h for t in (t1, t2)]
-    return torch.stack(cols, -1), t1, t2
+    cols, kb_cols = [], []
+    for t in (t1, t2):
+        r, kb = problem.residual(unit(n + step_h * t), obs)
+        cols.append((r.reshape(r0.shape) - r0) / step_h)
+        if kb0 is not None:
+            kb_cols.append((kb - kb0) / step_h)
+    return torch.stack(cols, -1), None if kb0 is None else torch.stack(kb_cols, -1), t1, t2
 
 
 def irls_weights(problem: NormalProblem, r0: Tensor) -> Tensor:
@@ -136,15 +169,35 @@ def _damped_step(jac: Tensor, r0: Tensor, irls: Tensor, lam: Tensor, max_step: f
     return step * (max_step / norm.clamp_min(max_step)).unsqueeze(-1)
 
 
+def _subset(obs: Observations, index: Tensor) -> Observations:
+    """``obs.select(index)`` for sorted unique indices (A,) — ``obs`` itself, not a copy, when they are all."""
+    return obs if index.numel() == obs.view.shape[0] else obs.select(index)
+
+
 def _refine_chunk(problem: NormalProblem, normals: Tensor, obs: Observations, *, max_iter: int,
                   step_h: float = 2e-3, max_step: float = 0.25) -> tuple[Tensor, Tensor, Tensor, int]:
-    """Levenberg–Marquardt on the normals (P, 3) of one chunk; returns normals, k_b, loss, iterations."""
+    """Levenberg–Marquardt on the normals (P, 3) of one chunk; returns normals, k_b, loss, iterations.
+
+    The Jacobian is taken by forward differences (2 evaluations) at the start and after a rejected
+    step; after an accepted step of at most :data:`BROYDEN_MAX_STEP` it is updated from the trial's
+    own residual (Broyden's rank-1 update, no evaluation: exact along the step, the other direction
+    off by the step times the curvature — the forward difference's own order at these steps).
+    A pixel leaves the active set as soon as its (nearly undamped) step is below :data:`LINEAR_STEP`:
+    that last step is taken on the linear model (residual, k_b and loss predicted, not evaluated;
+    off by the residual's curvature times the step squared — measured: mean and median normal
+    errors unchanged to 0.0003°, README). Otherwise it leaves after two iterations without progress."""
     p = normals.shape[0]
     dt, dev = normals.dtype, normals.device
     normals = normals.clone()
     with torch.no_grad():
         r, k_b = problem.residual(normals, obs)
         loss = problem.loss(r)
+        shape = r.shape[1:]
+        r = r.reshape(p, -1)  # (P, M)
+        jac3 = torch.zeros(p, r.shape[1], 3, dtype=dt, device=dev)  # (P, M, 3): dr/dN in the tangent plane
+        kb3 = torch.zeros(p, 3, dtype=dt, device=dev)  # (P, 3): dk_b/dN in the tangent plane
+        have_jac = torch.zeros(p, dtype=torch.bool, device=dev)  # jac3 usable at the pixel's normal
+        exact_jac = torch.zeros(p, dtype=torch.bool, device=dev)  # jac3 by forward differences at it
         lam = torch.full((p,), 1e-3, dtype=dt, device=dev)
         small = torch.zeros(p, dtype=torch.int64, device=dev)
         active = torch.ones(p, dtype=torch.bool, device=dev)
@@ -153,17 +206,56 @@ def _refine_chunk(problem: NormalProblem, normals: Tensor, obs: Observations, *,
             idx = torch.nonzero(active).flatten()
             if idx.numel() == 0:
                 break
-            sub = obs.select(idx)
+            sub = _subset(obs, idx)
             n = normals[idx]
-            r0 = r[idx].reshape(idx.numel(), -1)  # (A, M)
-            jac, t1, t2 = normal_jacobian(problem, n, r0, sub, step_h)
+            r0 = r[idx]  # (A, M)
+            fd = torch.nonzero(~have_jac[idx]).flatten()
+            if fd.numel():
+                jac_fd, kb_fd, t1, t2 = _jacobian_and_albedo(problem, n[fd], r0[fd], k_b[idx[fd]], _subset(sub, fd),
+                                                             step_h)
+                basis = torch.stack([t1, t2], -2)  # (F, 2, 3)
+                jac3[idx[fd]] = jac_fd @ basis
+                kb3[idx[fd]] = (kb_fd.unsqueeze(1) @ basis).squeeze(1)
+                have_jac[idx[fd]] = True
+                exact_jac[idx[fd]] = True
+            t1, t2 = tangent_basis(n)
+            jac = jac3[idx] @ torch.stack([t1, t2], -1)  # (A, M, 2)
             step = _damped_step(jac, r0, irls_weights(problem, r0), lam[idx], max_step)
+            linear = (step.norm(dim=-1) < LINEAR_STEP) & (lam[idx] <= _LAM_CONVERGED)
+            li = torch.nonzero(linear).flatten()
+            if li.numel():  # converged: the last step on the linear model
+                d3 = step[li, :1] * t1[li] + step[li, 1:] * t2[li]  # (L, 3)
+                last = unit(n[li] + d3)
+                ok = (last * sub.view[li]).sum(-1) > 0
+                pi = idx[li][ok]
+                r_lin = r0[li] + (jac[li] @ step[li].unsqueeze(-1)).squeeze(-1)
+                normals[pi] = last[ok]
+                r[pi] = r_lin[ok]
+                k_b[pi] = k_b[pi] + (kb3[pi] * d3[ok]).sum(-1)
+                loss[pi] = problem.loss(r_lin[ok].reshape(-1, *shape))
+                active[idx[li]] = False
+            go = torch.nonzero(~linear).flatten()
+            if go.numel() < idx.numel():  # only the pixels still moving try a step
+                idx, step, n, t1, t2, r0 = idx[go], step[go], n[go], t1[go], t2[go], r0[go]
+                sub = _subset(sub, go)
+            if idx.numel() == 0:
+                break
             trial = unit(n + step[:, :1] * t1 + step[:, 1:] * t2)
             facing = (trial * sub.view).sum(-1) > 0
             rt, kbt = problem.residual(trial, sub)
             lt = problem.loss(rt)
+            rt = rt.reshape(r0.shape)
             accept = facing & (lt < loss[idx]) & torch.isfinite(lt)
+            # Broyden: the Jacobians at the accepted trial, exact along the chord d = trial − n
+            d = trial - n  # (A, 3)
+            dn = d / (d * d).sum(-1, keepdim=True).clamp_min(1e-30)
+            miss = (rt - r0) - (jac3[idx] @ d.unsqueeze(-1)).squeeze(-1)  # (A, M)
+            miss_kb = (kbt - k_b[idx]) - (kb3[idx] * d).sum(-1)  # (A,)
             ai = idx[accept]
+            jac3[ai] += (miss.unsqueeze(-1) * dn.unsqueeze(1))[accept]
+            kb3[ai] += (miss_kb.unsqueeze(-1) * dn)[accept]
+            exact_jac[ai] = False
+            have_jac[idx] = torch.where(accept, step.norm(dim=-1) <= BROYDEN_MAX_STEP, exact_jac[idx])
             normals[ai] = trial[accept]
             r[ai] = rt[accept]
             k_b[ai] = kbt[accept]
@@ -171,9 +263,9 @@ def _refine_chunk(problem: NormalProblem, normals: Tensor, obs: Observations, *,
             loss[ai] = lt[accept]
             lam[idx] = torch.where(accept, (lam[idx] / 3).clamp_min(1e-7), (lam[idx] * 4).clamp_max(1e7))
             # frozen after two iterations without progress (active set)
-            tiny_step = (step.norm(dim=-1) < 1e-4) | (accept & (rel < 1e-7)) | (~accept & (lam[idx] > 1e6))
+            tiny_step = (step.norm(dim=-1) < STEP_TOL) | (accept & (rel < 1e-7)) | (~accept & (lam[idx] > 1e6))
             small[idx] = torch.where(tiny_step, small[idx] + 1, torch.zeros_like(small[idx]))
-            active = small < 2
+            active[idx] = small[idx] < 2
     return normals, k_b, loss, it
 
 

@@ -54,3 +54,60 @@ def test_propagation_moves_pixels_out_of_a_wrong_basin() -> None:
     # and the polish lands on the truth
     polished, *_ = refine_normals(problem, out.clone(), obs, max_iter=20)
     assert float(angular_error_deg(polished, truth).max()) < 0.05
+
+
+class _Counting(NormalProblem):
+    """A NormalProblem that counts the pixels it evaluates."""
+
+    def residual(self, normals: Tensor, obs: Observations) -> tuple[Tensor, Tensor]:
+        self.__dict__["evaluated"] = self.__dict__.get("evaluated", 0) + normals.shape[0]
+        return super().residual(normals, obs)
+
+
+def _cap_problem(n: int = 10) -> tuple[_Counting, Observations, Tensor]:
+    """Noise-free observations of a sphere cap under 8 lights, the counting problem and the true normals."""
+    truth = _sphere_cap(n, n).reshape(-1, 3)
+    k = 8
+    t = torch.linspace(0.2, 0.9, k, dtype=torch.float64)
+    phi = torch.arange(k, dtype=torch.float64) * 2.4
+    lights = torch.stack([t.sin() * phi.cos(), t.sin() * phi.sin(), -t.cos()], -1)
+    view = torch.tensor([0.0, 0.0, -1.0], dtype=torch.float64).expand(truth.shape[0], 3)
+    material = dict(ior=1.5, alpha=0.3, beta=2.0, kappa=0.0)
+    s = fmbrdf_stokes(truth[:, None], lights[None], view[:, None], k_s=1.0, k_b=0.5, **material)
+    p = truth.shape[0]
+    obs = Observations(s, torch.ones(s.shape[:2], dtype=s.dtype), lights.expand(p, k, 3), torch.ones(p, k, dtype=s.dtype),
+                       view)
+    base = NormalProblem.build(build_tables(**material), obs.stokes, 1.0, True, 0.5, True, 1e-3)
+    return _Counting(**vars(base)), obs, truth
+
+
+def test_converged_pixels_are_not_evaluated_again() -> None:
+    """A pixel at its optimum costs its residual and the two Jacobian columns — no trial, no second
+    iteration; a pixel started near it (0.1°, a finer level's start) ends on the optimum with at most
+    one trial, its k_b and loss those of its normal."""
+    problem, obs, truth = _cap_problem()
+    p = truth.shape[0]
+    normals, k_b, loss, _ = refine_normals(problem, truth.clone(), obs, max_iter=10)
+    assert problem.evaluated == 3 * p
+    assert float(angular_error_deg(normals, truth).max()) < 1e-3
+    problem.__dict__["evaluated"] = 0
+    tilt = torch.nn.functional.normalize(truth + torch.tensor([1.2e-3, -1.0e-3, 0.0], dtype=torch.float64), dim=-1)
+    loss_start = problem.pixel_loss(tilt, obs)
+    problem.__dict__["evaluated"] = 0
+    normals, k_b, loss, _ = refine_normals(problem, tilt, obs, max_iter=10)
+    assert problem.evaluated <= 4 * p, problem.evaluated / p
+    assert float(angular_error_deg(normals, truth).max()) < 2e-3
+    r, kb_true = NormalProblem.residual(problem, normals, obs)
+    assert torch.allclose(k_b, kb_true, rtol=1e-4)
+    assert bool(((loss - problem.loss(r)).abs() <= 0.01 * loss_start).all())
+
+
+def test_far_start_still_converges_with_broyden_updates() -> None:
+    """From 10° off, the Jacobian updated from each accepted trial (not re-taken) still leads every pixel
+    to the truth, in fewer evaluations than three per iteration."""
+    problem, obs, truth = _cap_problem()
+    p = truth.shape[0]
+    far = torch.nn.functional.normalize(truth + torch.tensor([0.15, 0.08, 0.0], dtype=torch.float64), dim=-1)
+    normals, _, _, iterations = refine_normals(problem, far, obs, max_iter=30)
+    assert float(angular_error_deg(normals, truth).max()) < 0.01
+    assert problem.evaluated < p * (1 + 3 * iterations) * 0.75, (problem.evaluated / p, iterations)
