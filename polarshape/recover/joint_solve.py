@@ -36,7 +36,7 @@ Acceptance: the trial globals are evaluated with each pixel's old and new normal
 keeps the better (for fixed globals the loss is a sum of per-pixel terms), so a pixel whose
 normal step overshoots does not veto the globals' step; the step is taken when the total loss
 falls, else the globals' λ grows tenfold. Stops when the relative loss change of an accepted
-step is below ``tol`` or no damping finds a descent. The loss never rises, so a fit that adds κ
+step is below ``tol`` (relative to max(loss, δ²/100): below that the loss is far under the noise's) or no damping finds a descent. The loss never rises, so a fit that adds κ
 to a κ = 0 optimum (:func:`nested_kappa`, which also tries from the κ = 0 solve's start and keeps
 the lower) can only lower it: a proper nested fit.
 
@@ -339,6 +339,9 @@ def joint_solve(normals: Tensor, obs: Observations, params: FMBRDFParams, *, nam
         cand = _highlight_normals(obs)
         st, _ = _try_highlights(model, st, cand)
         total = float(_mean(st.loss_pp, obs))
+        # changes are relative to the loss, or to a hundredth of δ² where the loss is below it (far under
+        # the noise: noise-free data would otherwise run to machine precision, 30+ κ-table iterations)
+        floor = max(1e-2 * float(delta) ** 2, 1e-300)
         lam_g = 1e-3
         lam_n = torch.full((p,), 1e-3, dtype=torch.float64, device=dev)
         rel, it = 0.0, 0
@@ -377,7 +380,7 @@ def joint_solve(normals: Tensor, obs: Observations, params: FMBRDFParams, *, nam
                 total_t, moved_t = torch.stack([_mean(loss_pp, obs).double(), keep_new.double().mean()]).tolist()
                 better = keep_new | (trial_new.loss_pp < st.loss_pp)
                 if math.isfinite(total_t) and total_t < total:
-                    rel = (total - total_t) / max(total, 1e-300)
+                    rel = (total - total_t) / max(total, floor)
                     kn, kn3 = keep_new[:, None], keep_new[:, None, None]
                     st = _State(vals, trial_new.problem, torch.where(kn, n_new, st.n),
                                 torch.where(kn3, trial_new.surf, trial_old.surf),
@@ -391,7 +394,7 @@ def joint_solve(normals: Tensor, obs: Observations, params: FMBRDFParams, *, nam
                     st, jumped = _try_highlights(model, st, cand)
                     lam_n = torch.where(jumped, torch.full_like(lam_n, 1e-3), lam_n)
                     total_j = float(_mean(st.loss_pp, obs))
-                    rel = (total - total_j) / max(total, 1e-300) + rel
+                    rel = (total - total_j) / max(total, floor) + rel
                     total = total_j
                     break
                 lam_g = min(lam_g * 10, 1e10)

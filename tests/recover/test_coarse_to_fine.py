@@ -49,3 +49,31 @@ def test_solve_fmbrdf_recovers_material_and_normals_from_a_tilted_start() -> Non
     assert float(err.mean()) < 0.5, float(err.mean())
     assert abs(state.params.ior - 1.5) < 0.05 and abs(state.params.alpha - 0.3) < 0.03, state.params
     assert log.history and "normals" in log.timings and "global_params" in log.timings
+
+
+def _kappa_said(log: object) -> str:
+    said = [s for s in log.skipped if s.startswith("kappa:")]
+    assert len(said) == 1, log.skipped
+    return said[0]
+
+
+def test_default_kappa_test_is_a_nested_fit_that_never_reports_a_rise() -> None:
+    # the alternation's old probe fitted κ from a κ > 0 start and reported "κ > 0 changed the loss by
+    # +47 %" (256² sphere): a nested fit starts at the κ = 0 optimum and can only lower the loss
+    inputs, truth = _sphere_inputs(14)
+    start = torch.where(inputs.mask[..., None], truth, torch.tensor([0.0, 0.0, -1.0], dtype=torch.float64))
+    state, log = solve_fmbrdf(inputs, start, RecoveryOptions(model="fmbrdf", max_outer_iterations=6))
+    said = _kappa_said(log)
+    assert state.params.kappa == 0.0 and log.counts["kappa_probes"] == 1
+    assert "nested" in said and "by -" not in said and "+" not in said.split("without")[0], said
+    assert "kappa_test" in log.timings
+
+
+def test_default_kappa_test_keeps_kappa_on_correlated_data() -> None:
+    inputs, truth = _sphere_inputs(14, alpha=0.3, kappa=50.0)
+    start = torch.where(inputs.mask[..., None], truth, torch.tensor([0.0, 0.0, -1.0], dtype=torch.float64))
+    state, log = solve_fmbrdf(inputs, start, RecoveryOptions(model="fmbrdf"))
+    assert not [s for s in log.skipped if s.startswith("kappa:")], log.skipped
+    assert state.params.kappa > 20.0, state.params
+    m = inputs.mask
+    assert float(angular_error_deg(state.normals[m], truth[m]).mean()) < 0.5

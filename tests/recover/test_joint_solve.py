@@ -11,7 +11,7 @@ import torch
 from polarshape.brdf.params import FMBRDFParams
 from polarshape.metrics import angular_error_deg
 from polarshape.recover.coarse_to_fine import solve_fmbrdf
-from polarshape.recover.joint_solve import joint_solve, nested_kappa, schur_step
+from polarshape.recover.joint_solve import joint_solve, nested_kappa, schur_step, trimmed_gain
 from polarshape.recover.observations import Observations, flatten_observations
 from polarshape.recover.options import RecoveryOptions
 
@@ -157,3 +157,14 @@ def test_nested_kappa_also_starts_from_the_kappa_free_solves_start() -> None:
     corner = replace(base, params=replace(base.params, alpha=0.01, beta=6.0))
     fit, gain = nested_kappa(corner, obs, names=("ior", "alpha", "beta"), max_iter=5, **kw)
     assert gain > 0.5 and fit.params.kappa > 10.0, (gain, fit.params)
+
+
+def test_trimmed_gain_leaves_out_a_gain_carried_by_a_few_pixels() -> None:
+    base = torch.ones(200, dtype=torch.float64)
+    few = base.clone()
+    few[:2] = 0.0  # two pixels explained, the rest slightly worse: 1 % gain in all, none without them
+    few[2:] = 1.0001
+    assert (base.sum() - few.sum()) / base.sum() > 0.009
+    assert trimmed_gain(base, few) < 0.0
+    broad = 0.95 * base  # every pixel 5 % better
+    assert trimmed_gain(base, broad) == pytest.approx(0.05)
