@@ -11,8 +11,11 @@ b. *normals*: per-pixel Levenberg–Marquardt (:func:`polarshape.recover.normal_
 The alternation stops when the loss changed by ≤ 0.1 % over the last two outer iterations (a
 window, not one step) or after ``max_outer_iterations``. Finer levels start from the upsampled
 normals and run step b only. With ``fit_kappa`` None, κ is tested once the coarse level has
-converged: a cheap probe on coarse tables, then a fit; kept only if it lowers the loss by ≥ 1 %
-(else κ = 0, the separable fast path, and the skip recorded).
+converged, as a nested fit from that κ = 0 optimum (:func:`_kappa_decision`, shared with the joint
+solve below: it cannot raise the loss); kept only if it lowers the loss by ≥ 1 % on all pixels and
+without the 2 % that gain most (else κ = 0, the separable fast path, and the skip recorded). A kept
+κ ends the level's alternation: the nested fit moved material and subsample normals together, and
+the level's normals then follow the final material once.
 
 A known material (``recovery.material``, :class:`KnownMaterial`) changes step a. ``fixed``: μ, α, β,
 κ stay the material's and step a only solves the albedos in closed form on the subsample — no
@@ -30,9 +33,8 @@ unknown material.
 material): after the first outer iteration (the α grid, the normals of the whole level) normals and
 material of the subsample move together in one Levenberg–Marquardt with the Schur complement of
 the per-pixel blocks (:func:`polarshape.recover.joint_solve.joint_solve`); κ is then a nested fit
-from that κ = 0 optimum on coarse tables (:func:`polarshape.recover.joint_solve.nested_kappa`; it
-cannot raise the loss), polished on full tables and kept when it lowers the full-table loss by ≥ 1 %; the level's normals are then refined for the final
-material. Finer levels are as above.
+from that κ = 0 optimum (:func:`_kappa_decision`, as above); the level's normals are then refined
+for the final material. Finer levels are as above.
 
 Robust loss: Huber on channel-weighted Stokes residuals, δ = 3 × the robust (MAD) residual σ of the
 initial fit, floored at 4 quantisation steps (:func:`polarshape.recover.normal_solver.huber_delta`).

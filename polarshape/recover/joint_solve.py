@@ -36,9 +36,11 @@ Acceptance: the trial globals are evaluated with each pixel's old and new normal
 keeps the better (for fixed globals the loss is a sum of per-pixel terms), so a pixel whose
 normal step overshoots does not veto the globals' step; the step is taken when the total loss
 falls, else the globals' λ grows tenfold. Stops when the relative loss change of an accepted
-step is below ``tol`` (relative to max(loss, δ²/100): below that the loss is far under the noise's) or no damping finds a descent. The loss never rises, so a fit that adds κ
-to a κ = 0 optimum (:func:`nested_kappa`, which also tries from the κ = 0 solve's start and keeps
-the lower) can only lower it: a proper nested fit.
+step is below ``tol`` (relative to max(loss, δ²/100): below that the loss is far under the
+noise's) or no damping finds a descent. The loss never rises, so a fit that adds κ to a κ = 0
+optimum (:func:`nested_kappa`, which also tries from the κ = 0 solve's start when κ does not grow
+from the optimum, and keeps the lower) can only lower it: a proper nested fit. Whether the gain is
+the data's or a few pixels' is :func:`trimmed_gain`'s question.
 
 Host syncs: per iteration the globals' step (G numbers, the tables are built from them) and the
 total loss (the acceptance and convergence test) come to the host; every per-pixel operation stays
@@ -414,37 +416,39 @@ def joint_solve(normals: Tensor, obs: Observations, params: FMBRDFParams, *, nam
                        unit(normals), replace(params), st.loss_pp, initial_pp)
 
 
-def nested_kappa(start: JointResult, obs: Observations, *, fresh_max_iter: int = 6, **kwargs: object
-                 ) -> tuple[JointResult, float]:
+def nested_kappa(start: JointResult, obs: Observations, *, fresh_max_iter: int = 6, min_gain: float = 0.01,
+                 **kwargs: object) -> tuple[JointResult, float]:
     """Add κ to a κ = 0 optimum: the joint solve from ``start`` (its normals and material, κ = 0)
     with κ among the fitted names; the loss can only fall from the start (module docstring).
 
     The κ = 0 optimum need not be a point from which κ can grow: on a κ = 50 matte sphere the κ = 0
     model explains the body's correlation with a narrow lobe (α at its bound 0.01, β at 6; on the
     blob α 0.07) and the κ solve from there stays at κ = 0 (gain 0.01 %), while from the κ = 0
-    solve's own start it finds κ 17–24 and 2–6 × lower loss. So the κ solve runs from both
-    (``start.start_normals``, ``start.start_params`` with κ = 0 for the second) and the lower is
-    returned — never above the κ = 0 optimum's loss, so still a nested fit. The second solve runs at
-    most ``fresh_max_iter`` iterations: on κ-free data it only re-finds the κ = 0 optimum (4 iterations
-    on the 40² α 0.3 sphere), on κ data its gain is large within a few, and a kept κ is polished anyway.
+    solve's own start it finds κ 17–24 and 2–6 × lower loss. So when the κ solve from the optimum
+    gains less than ``min_gain``, it runs again from ``start.start_normals``, ``start.start_params``
+    (κ = 0) and the lower is returned — never above the κ = 0 optimum's loss, so still a nested fit.
+    The second solve runs at most ``fresh_max_iter`` iterations: on κ-free data it only re-finds the
+    κ = 0 optimum (4 iterations on the 40² α 0.3 sphere), on κ data its gain is large within a few,
+    and a kept κ is polished anyway.
 
     Args:
         start: the κ = 0 solve. obs: its observations. fresh_max_iter: the most iterations from
-            ``start``'s own start. kwargs: :func:`joint_solve`'s keywords
-            (``names`` gets ``kappa`` added).
+            ``start``'s own start. min_gain: the relative gain from the optimum that makes the second
+            start unnecessary. kwargs: :func:`joint_solve`'s keywords (``names`` gets ``kappa`` added).
 
     Returns:
-        The κ solve (its ``initial_loss`` and ``initial_pixel_loss``: the κ = 0 optimum's, on the κ solve's
-        tables) and its relative
-        gain (κ = 0 optimum's loss − final loss) / κ = 0 optimum's loss ≥ 0.
+        The κ solve (its ``initial_loss`` and ``initial_pixel_loss``: the κ = 0 optimum's, on the κ
+        solve's tables) and its relative gain (κ = 0 optimum's loss − final loss) / κ = 0 optimum's loss ≥ 0.
     """
     base = tuple(kwargs.pop("names", ()))  # type: ignore[arg-type]
     names = base + ("kappa",)
     fit = joint_solve(start.normals, obs, replace(start.params, kappa=0.0), names=names, **kwargs)  # type: ignore[arg-type]
     ref = fit.initial_loss  # the κ = 0 optimum on these tables
-    if start.start_normals is not None and start.start_params is not None:
+    stuck = (ref - fit.loss) < min_gain * ref
+    if start.start_normals is not None and start.start_params is not None and stuck:
         # a test, not the final fit (a kept κ is polished by the caller): a few iterations show a gain
-        fresh_kw = {**kwargs, "max_iter": min(int(kwargs.get("max_iter", 20)), fresh_max_iter)}  # type: ignore[call-overload]
+        most = min(int(kwargs.get("max_iter", 20)), fresh_max_iter)  # type: ignore[call-overload]
+        fresh_kw = {**kwargs, "max_iter": most}
         fresh = joint_solve(start.start_normals, obs, replace(start.start_params, kappa=0.0), names=names,
                             **fresh_kw)  # type: ignore[arg-type]
         logger.info("nested κ: from the κ = 0 optimum loss %.6g (κ %.3g), from its start %.6g (κ %.3g)", fit.loss,

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import pytest
 import torch
 
 from polarshape.brdf import fmbrdf_stokes
@@ -69,6 +70,7 @@ def test_default_kappa_test_is_a_nested_fit_that_never_reports_a_rise() -> None:
     assert "kappa_test" in log.timings
 
 
+@pytest.mark.slow
 def test_default_kappa_test_keeps_kappa_on_correlated_data() -> None:
     inputs, truth = _sphere_inputs(14, alpha=0.3, kappa=50.0)
     start = torch.where(inputs.mask[..., None], truth, torch.tensor([0.0, 0.0, -1.0], dtype=torch.float64))
