@@ -416,7 +416,7 @@ def joint_solve(normals: Tensor, obs: Observations, params: FMBRDFParams, *, nam
                        unit(normals), replace(params), st.loss_pp, initial_pp)
 
 
-def nested_kappa(start: JointResult, obs: Observations, *, fresh_max_iter: int = 6, min_gain: float = 0.01,
+def nested_kappa(start: JointResult, obs: Observations, *, fresh_max_iter: int = 3, min_gain: float = 0.01,
                  **kwargs: object) -> tuple[JointResult, float]:
     """Add κ to a κ = 0 optimum: the joint solve from ``start`` (its normals and material, κ = 0)
     with κ among the fitted names; the loss can only fall from the start (module docstring).
