@@ -417,7 +417,7 @@ def joint_solve(normals: Tensor, obs: Observations, params: FMBRDFParams, *, nam
 
 
 def nested_kappa(start: JointResult, obs: Observations, *, fresh_max_iter: int = 3, min_gain: float = 0.01,
-                 **kwargs: object) -> tuple[JointResult, float]:
+                 corner_ratio: float = 2.0, **kwargs: object) -> tuple[JointResult, float]:
     """Add κ to a κ = 0 optimum: the joint solve from ``start`` (its normals and material, κ = 0)
     with κ among the fitted names; the loss can only fall from the start (module docstring).
 
@@ -425,16 +425,19 @@ def nested_kappa(start: JointResult, obs: Observations, *, fresh_max_iter: int =
     model explains the body's correlation with a narrow lobe (α at its bound 0.01, β at 6; on the
     blob α 0.07) and the κ solve from there stays at κ = 0 (gain 0.01 %), while from the κ = 0
     solve's own start it finds κ 17–24 and 2–6 × lower loss. So when the κ solve from the optimum
-    gains less than ``min_gain``, it runs again from ``start.start_normals``, ``start.start_params``
-    (κ = 0) and the lower is returned — never above the κ = 0 optimum's loss, so still a nested fit.
-    The second solve runs at most ``fresh_max_iter`` iterations: on κ-free data it only re-finds the
+    gains less than ``min_gain`` and the κ = 0 solve ended far from its start (α or β changed by a
+    factor ≥ ``corner_ratio``: on those corners by 11–80 in α; on κ-free data the lobe moves little
+    from the α grid's start, and the second solve would only find the optimum again), it runs again
+    from ``start.start_normals``, ``start.start_params`` (κ = 0) and the lower is returned — never
+    above the κ = 0 optimum's loss, so still a nested fit. The second solve runs at most ``fresh_max_iter`` iterations: on κ-free data it only re-finds the
     κ = 0 optimum (4 iterations on the 40² α 0.3 sphere), on κ data its gain is large within a few,
     and a kept κ is polished anyway.
 
     Args:
         start: the κ = 0 solve. obs: its observations. fresh_max_iter: the most iterations from
             ``start``'s own start. min_gain: the relative gain from the optimum that makes the second
-            start unnecessary. kwargs: :func:`joint_solve`'s keywords (``names`` gets ``kappa`` added).
+            start unnecessary. corner_ratio: how far (a factor in α or β) the κ = 0 solve must have
+            moved from its start for the second start. kwargs: :func:`joint_solve`'s keywords (``names`` gets ``kappa`` added).
 
     Returns:
         The κ solve (its ``initial_loss`` and ``initial_pixel_loss``: the κ = 0 optimum's, on the κ
@@ -445,11 +448,15 @@ def nested_kappa(start: JointResult, obs: Observations, *, fresh_max_iter: int =
     fit = joint_solve(start.normals, obs, replace(start.params, kappa=0.0), names=names, **kwargs)  # type: ignore[arg-type]
     ref = fit.initial_loss  # the κ = 0 optimum on these tables
     stuck = (ref - fit.loss) < min_gain * ref
-    if start.start_normals is not None and start.start_params is not None and stuck:
+    s0 = start.start_params
+    # a corner: the κ = 0 solve moved the lobe far (×2 or more in α or β) from where it started
+    cornered = s0 is not None and any(abs(math.log(getattr(start.params, n) / max(getattr(s0, n), 1e-12))) >=
+                                      math.log(corner_ratio) for n in ("alpha", "beta"))
+    if start.start_normals is not None and s0 is not None and stuck and cornered:
         # a test, not the final fit (a kept κ is polished by the caller): a few iterations show a gain
         most = min(int(kwargs.get("max_iter", 20)), fresh_max_iter)  # type: ignore[call-overload]
         fresh_kw = {**kwargs, "max_iter": most}
-        fresh = joint_solve(start.start_normals, obs, replace(start.start_params, kappa=0.0), names=names,
+        fresh = joint_solve(start.start_normals, obs, replace(s0, kappa=0.0), names=names,
                             **fresh_kw)  # type: ignore[arg-type]
         logger.info("nested κ: from the κ = 0 optimum loss %.6g (κ %.3g), from its start %.6g (κ %.3g)", fit.loss,
                     fit.params.kappa, fresh.loss, fresh.params.kappa)
