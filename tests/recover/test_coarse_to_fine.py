@@ -58,6 +58,7 @@ def _kappa_said(log: object) -> str:
     return said[0]
 
 
+@pytest.mark.slow
 def test_default_kappa_test_is_a_nested_fit_that_never_reports_a_rise() -> None:
     # the alternation's old probe fitted κ from a κ > 0 start and reported "κ > 0 changed the loss by
     # +47 %" (256² sphere): a nested fit starts at the κ = 0 optimum and can only lower the loss
