@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import pytest
 import torch
 
 from polarshape.brdf import fmbrdf_stokes
@@ -74,3 +75,33 @@ def test_upsample_normals_bilinear_start_is_closer_than_nearest() -> None:
     far = torch.zeros(64, 64, dtype=torch.bool)
     far[0, 0] = True  # the grid's corner: outside the sphere, no coarser normal near
     assert torch.equal(up[far], fallback[far])
+
+
+def _kappa_said(log: object) -> str:
+    said = [s for s in log.skipped if s.startswith("kappa:")]
+    assert len(said) == 1, log.skipped
+    return said[0]
+
+
+@pytest.mark.slow
+def test_default_kappa_test_is_a_nested_fit_that_never_reports_a_rise() -> None:
+    # the alternation's old probe fitted κ from a κ > 0 start and reported "κ > 0 changed the loss by
+    # +47 %" (256² sphere): a nested fit starts at the κ = 0 optimum and can only lower the loss
+    inputs, truth = _sphere_inputs(14)
+    start = torch.where(inputs.mask[..., None], truth, torch.tensor([0.0, 0.0, -1.0], dtype=torch.float64))
+    state, log = solve_fmbrdf(inputs, start, RecoveryOptions(model="fmbrdf", max_outer_iterations=6))
+    said = _kappa_said(log)
+    assert state.params.kappa == 0.0 and log.counts["kappa_probes"] == 1
+    assert "nested" in said and "by -" not in said and "+" not in said.split("without")[0], said
+    assert "kappa_test" in log.timings
+
+
+@pytest.mark.slow
+def test_default_kappa_test_keeps_kappa_on_correlated_data() -> None:
+    inputs, truth = _sphere_inputs(14, alpha=0.3, kappa=50.0)
+    start = torch.where(inputs.mask[..., None], truth, torch.tensor([0.0, 0.0, -1.0], dtype=torch.float64))
+    state, log = solve_fmbrdf(inputs, start, RecoveryOptions(model="fmbrdf"))
+    assert not [s for s in log.skipped if s.startswith("kappa:")], log.skipped
+    assert state.params.kappa > 20.0, state.params
+    m = inputs.mask
+    assert float(angular_error_deg(state.normals[m], truth[m]).mean()) < 0.5

@@ -11,7 +11,7 @@ import torch
 from polarshape.brdf.params import FMBRDFParams
 from polarshape.metrics import angular_error_deg
 from polarshape.recover.coarse_to_fine import solve_fmbrdf
-from polarshape.recover.joint_solve import joint_solve, nested_kappa, schur_step
+from polarshape.recover.joint_solve import joint_solve, nested_kappa, schur_step, trimmed_gain
 from polarshape.recover.observations import Observations, flatten_observations
 from polarshape.recover.options import RecoveryOptions
 
@@ -157,3 +157,25 @@ def test_nested_kappa_also_starts_from_the_kappa_free_solves_start() -> None:
     corner = replace(base, params=replace(base.params, alpha=0.01, beta=6.0))
     fit, gain = nested_kappa(corner, obs, names=("ior", "alpha", "beta"), max_iter=5, **kw)
     assert gain > 0.5 and fit.params.kappa > 10.0, (gain, fit.params)
+
+
+def test_trimmed_gain_leaves_out_a_gain_carried_by_a_few_pixels() -> None:
+    base = torch.ones(200, dtype=torch.float64)
+    few = base.clone()
+    few[:2] = 0.0  # two pixels explained, the rest slightly worse: 1 % gain in all, none without them
+    few[2:] = 1.0001
+    assert (base.sum() - few.sum()) / base.sum() > 0.009
+    assert trimmed_gain(base, few) < 0.0
+    broad = 0.95 * base  # every pixel 5 % better
+    assert trimmed_gain(base, broad) == pytest.approx(0.05)
+
+
+@pytest.mark.slow
+def test_kappa_is_dropped_on_a_shiny_kappa_free_sphere() -> None:
+    # 40² α 0.03 sphere, true κ 0: two highlight pixels let κ trade with α for a > 1 % gain (κ 100
+    # was kept); without the 2 % of pixels that gain most the gain is gone
+    from test_normals import _recover, _simulate
+
+    result = _recover(_simulate("sphere", 40, 0.03, exposure_us=1000.0), solver="joint")
+    said = [s for s in result.skipped if "kappa:" in s]
+    assert result.params["kappa"] == 0.0 and len(said) == 1 and "nested" in said[0], result.skipped
