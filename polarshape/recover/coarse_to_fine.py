@@ -56,7 +56,7 @@ from tqdm.auto import tqdm
 
 from polarshape.brdf.fmbrdf import FMBRDFTables, build_tables
 from polarshape.brdf.params import FMBRDFParams
-from polarshape.recover.joint_solve import JointResult, joint_solve, nested_kappa, trimmed_gain
+from polarshape.recover.joint_solve import JointResult, joint_solve, loss_floor, nested_kappa, trimmed_gain
 from polarshape.recover.normal_solver import (
     NormalProblem, huber_delta, neighbour_index, propagate_normals, refine_normals, unit,
 )
@@ -375,8 +375,9 @@ def fit_level(inputs: RecoveryInputs, normals: Tensor, params: FMBRDFParams, opt
                             "seconds": time.perf_counter() - log.t_start, **lv.params.as_dict()})
         logger.info("level %d outer %d: loss %.6g, %s", level, it, loss, lv.params.as_dict())
         window.append(loss)
-        # converged: the loss changed by ≤ 0.1 % over the last two outer iterations (a window)
-        if len(window) >= 3 and abs(window[-3] - window[-1]) <= 1e-3 * abs(window[-3]):
+        # converged: the loss changed by ≤ 0.1 % over the last two outer iterations (a window), relative to
+        # the loss or, far under the noise, to loss_floor(δ)
+        if len(window) >= 3 and abs(window[-3] - window[-1]) <= 1e-3 * max(abs(window[-3]), loss_floor(lv.delta)):
             if not kappa_decided and fit_globals and start is not None:
                 kappa_decided = True
                 if _decide_kappa(lv, sub_idx, start, options, polarised, level=level, log=log):

@@ -65,7 +65,7 @@ from polarshape.recover.reflectometry import BOUNDS, render_parts, solve_albedos
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["JointResult", "TABLE_PARAMS", "joint_solve", "nested_kappa", "schur_step", "trimmed_gain"]
+__all__ = ["JointResult", "TABLE_PARAMS", "joint_solve", "loss_floor", "nested_kappa", "schur_step", "trimmed_gain"]
 
 #: The global parameters that need a table build, in the order of the global vector.
 TABLE_PARAMS: tuple[str, ...] = ("ior", "alpha", "beta", "kappa")
@@ -300,6 +300,14 @@ def _mean(loss_pp: Tensor, obs: Observations) -> Tensor:
     return loss_pp.sum() / obs.weight.sum().clamp_min(1.0)
 
 
+def loss_floor(delta: float) -> float:
+    """The loss scale below which relative changes no longer mean progress: a hundredth of δ² (the
+    mean Huber loss of residuals a tenth of δ, far under the noise). Convergence tests take changes
+    relative to max(loss, this): noise-free data would otherwise run to machine precision (30+
+    κ-table iterations) or compare rounding noise (losses of 1e-34)."""
+    return max(1e-2 * float(delta) ** 2, 1e-300)
+
+
 def joint_solve(normals: Tensor, obs: Observations, params: FMBRDFParams, *, names: tuple[str, ...] | list[str],
                 per_pixel_albedo: bool = True, polarised: bool = True, delta: float = 0.01, max_iter: int = 20,
                 tol: float = 1e-5, step_h: float = 2e-3, max_step: float = 0.25, n_grid: int = 65,
@@ -341,9 +349,7 @@ def joint_solve(normals: Tensor, obs: Observations, params: FMBRDFParams, *, nam
         cand = _highlight_normals(obs)
         st, _ = _try_highlights(model, st, cand)
         total = float(_mean(st.loss_pp, obs))
-        # changes are relative to the loss, or to a hundredth of δ² where the loss is below it (far under
-        # the noise: noise-free data would otherwise run to machine precision, 30+ κ-table iterations)
-        floor = max(1e-2 * float(delta) ** 2, 1e-300)
+        floor = loss_floor(delta)
         lam_g = 1e-3
         lam_n = torch.full((p,), 1e-3, dtype=torch.float64, device=dev)
         rel, it = 0.0, 0
