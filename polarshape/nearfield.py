@@ -94,6 +94,9 @@ _SCAN_POINTS = 240
 #: Local minima of the scan refined by Brent's method (the lowest first).
 _REFINED_MINIMA = 3
 
+#: Smallest share of the searched move the model rounds take (:func:`_model_rounds`: halved at every overshoot).
+_MIN_RELAXATION = 0.125
+
 
 class NearFieldOptions(BaseModel):
     """``nearfield:`` section of the run configuration (:func:`refine_near_field`)."""
@@ -120,7 +123,7 @@ class NearFieldOptions(BaseModel):
         8.0, gt=1, le=1000, description="the depth search spans the reference depth divided and multiplied by this"
     )
     full_model_rounds: int = Field(
-        2, ge=1, le=10, description="fits of the run's model (FMBRDF) once the geometry settled: the first at the "
+        3, ge=1, le=10, description="fits of the run's model (FMBRDF) once the geometry settled: the first at the "
         "settled lights, each further one after depth searches on the shading with the model's non-Lambertian part "
         "taken out (its k_s re-fitted per candidate)"
     )
@@ -155,6 +158,7 @@ class NearFieldIteration:
             depth (NaN first).
         residual: the depth search's relative Lambertian residual at the chosen placement (NaN without a search).
         seconds: the round's time.
+        relaxation: the model rounds' share of the searched move taken (1: all of it; NaN in other rounds).
     """
 
     iteration: int
@@ -165,6 +169,7 @@ class NearFieldIteration:
     depth_change: float
     residual: float
     seconds: float
+    relaxation: float = math.nan
 
     def as_dict(self) -> dict[str, Any]:
         return {k: (None if isinstance(v, float) and not math.isfinite(v) else v)
@@ -522,29 +527,34 @@ def estimate_depth_placement(
 # --- the loop ---
 
 
-def _relight(inputs: RecoveryInputs, used: Tensor, normals: np.ndarray, mask: np.ndarray, camera: Camera,
-             lights: Lights, integrate: Callable[[np.ndarray, np.ndarray, np.ndarray | None], np.ndarray],
-             depth_m: float, estimate: bool, model: ModelShading | None) -> tuple[np.ndarray, float, float, RecoveryInputs]:
-    """One geometry step: integrate ``normals`` (H, W, 3), place the shape (searched when ``estimate``,
-    near the current median depth ``depth_m``), check the rig against it, and move L and E to its points.
-    Returns (depth (H, W), median depth, search residual, relit inputs)."""
+def _search(inputs: RecoveryInputs, used: Tensor, normals: np.ndarray, mask: np.ndarray, camera: Camera,
+            lights: Lights, integrate: Callable[[np.ndarray, np.ndarray, np.ndarray | None], np.ndarray],
+            depth_m: float, estimate: bool, model: ModelShading | None) -> tuple[np.ndarray, float, float]:
+    """Integrate ``normals`` (H, W, 3) and search the shape's median depth near the current ``depth_m`` (when
+    ``estimate``). Returns (shape (H, W), the distance found (``depth_m`` without a search or when it finds
+    nothing), the search residual (NaN without one))."""
     shape = integrate(normals, mask & np.all(np.isfinite(normals), -1), None)
-    residual = math.nan
-    if estimate:
-        found, residual = estimate_depth_placement(inputs, used, shape, camera, lights, reference_depth=depth_m,
-                                                   search_factor=1.25, scan_points=24, model=model)
-        if math.isfinite(found):
-            depth_m = found
+    if not estimate:
+        return shape, depth_m, math.nan
+    found, residual = estimate_depth_placement(inputs, used, shape, camera, lights, reference_depth=depth_m,
+                                               search_factor=1.25, scan_points=24, model=model)
+    return shape, (found if math.isfinite(found) else depth_m), residual
+
+
+def _place(inputs: RecoveryInputs, shape: np.ndarray, depth_m: float, camera: Camera, lights: Lights
+           ) -> tuple[np.ndarray, RecoveryInputs]:
+    """The ``shape`` placed at ``depth_m`` (:func:`place_depth`), the rig checked against it, and L and E moved to
+    its points: (depth (H, W), relit inputs)."""
     depth = place_depth(shape, depth_m, camera.projection)
     surface = np.isfinite(depth)
     check_near_field_lights(lights, camera.unproject(np.where(surface, depth, np.nan))[surface])
     l_pix, e_pix = pixel_lights(lights, _filled_points(camera, depth, depth_m), like=inputs.stokes)
-    return depth, depth_m, residual, dataclasses.replace(inputs, lights=l_pix, irradiance=e_pix)
+    return depth, dataclasses.replace(inputs, lights=l_pix, irradiance=e_pix)
 
 
 def _record(it: int, kind: str, depth: np.ndarray | None, prev_depth: np.ndarray | None, normals: np.ndarray,
             prev_normals: np.ndarray, mask: np.ndarray, depth_m: float, reference_depth: float, camera: Camera,
-            residual: float, t0: float) -> NearFieldIteration:
+            residual: float, t0: float, relaxation: float = math.nan) -> NearFieldIteration:
     """The :class:`NearFieldIteration` of a round (changes against the previous round's normals and depth)."""
     both = mask & np.all(np.isfinite(normals), -1) & np.all(np.isfinite(prev_normals), -1)
     change = float(np.mean(angular_error_deg(normals, prev_normals, both)[both])) if both.any() else math.nan
@@ -556,7 +566,69 @@ def _record(it: int, kind: str, depth: np.ndarray | None, prev_depth: np.ndarray
     placement = depth_m / reference_depth if camera.projection == "perspective" else depth_m - reference_depth
     logger.info("nearfield round %d (%s normals): median depth %.5g m, normal change %.3g°, depth change %.3g",
                 it, kind, median, change, depth_change)
-    return NearFieldIteration(it, kind, median, placement, change, depth_change, residual, time.perf_counter() - t0)
+    return NearFieldIteration(it, kind, median, placement, change, depth_change, residual, time.perf_counter() - t0,
+                              relaxation)
+
+
+def _model_rounds(
+    inputs: RecoveryInputs, normals: np.ndarray, depth: np.ndarray | None, depth_m: float, model: ModelShading, *,
+    mask: np.ndarray, camera: Camera, lights: Lights,
+    integrate: Callable[[np.ndarray, np.ndarray, np.ndarray | None], np.ndarray], estimate: bool,
+    options: NearFieldOptions, reference_depth: float, iterations: list[NearFieldIteration], it: int,
+    skipped: list[str],
+) -> tuple[RecoveryInputs, np.ndarray, np.ndarray | None, float, int]:
+    """The cheap rounds with the model's material held (module docstring, step 2), damped.
+
+    Each round integrates the current normals (H, W, 3), searches the distance with the model's
+    non-Lambertian part taken out, moves L and E, re-fits k_s and re-solves the normals
+    (:func:`corrected_normals`). The distance and the normals feed back into each other with a negative
+    gain that can exceed 1 in size (a glossy sphere: the distance swung 0.3158 ↔ 0.3206 ↔ 0.3145 ↔
+    0.3228 m, growing): the move to the distance found is under-relaxed in log-distance — all of it at first,
+    halved (down to :data:`_MIN_RELAXATION`) each time the search's move changes sign (an overshoot). Settled:
+    the normal change below ``tolerance_deg``, and the RMS depth change and the search's full move below
+    ``depth_tolerance``. Not settled after ``max_iterations``: the state whose next search moved least (the
+    one nearest the loop's fixed point) is kept.
+
+    Appends the rounds to ``iterations`` (numbered on from ``it``) and a note to ``skipped`` when a round
+    before the last is kept. Returns (inputs, normals, depth (H, W) or None, median depth, last round number).
+    """
+    relaxation, prev_gap = 1.0, math.nan
+    best_gap, best = math.inf, None
+    state = (inputs, normals, depth, depth_m, it)
+    settled = False
+    for _ in range(options.max_iterations):
+        it += 1
+        t0 = time.perf_counter()
+        shape, found, residual = _search(inputs, inputs.valid, normals, mask, camera, lights, integrate, depth_m,
+                                         estimate, model)
+        gap = math.log(found / depth_m)  # the search's full move (0 without a search)
+        if abs(gap) < best_gap:  # measured at the state this round starts from
+            best_gap, best = abs(gap), state
+        if gap * prev_gap < 0:  # overshoot: the distance swings around the fixed point
+            relaxation = max(relaxation / 2, _MIN_RELAXATION)
+        prev_gap = gap
+        depth_m = depth_m * math.exp(relaxation * gap)
+        new_depth, inputs = _place(inputs, shape, depth_m, camera, lights)
+        model = model.at(inputs)
+        new_normals = corrected_normals(inputs, model)
+        model = dataclasses.replace(model, normals=torch.from_numpy(new_normals).to(model.normals))
+        iterations.append(_record(it, "model-ps", new_depth, depth, new_normals, normals, mask, depth_m,
+                                  reference_depth, camera, residual, t0, relaxation))
+        depth, normals = new_depth, new_normals
+        state = (inputs, normals, depth, depth_m, it)
+        last = iterations[-1]
+        if last.normal_change_deg < options.tolerance_deg and (not estimate or (
+                last.depth_change < options.depth_tolerance and abs(gap) < options.depth_tolerance)):
+            settled = True
+            break
+    if not settled and best is not None and best[-1] != it:
+        inputs, normals, depth, depth_m, kept = best
+        skipped.append(f"nearfield: the model rounds did not settle in {options.max_iterations} "
+                       f"(nearfield.max_iterations); kept round {kept}, whose distance the next search moved least "
+                       f"({100 * best_gap:.2g} %)")
+        logger.info("nearfield: model rounds not settled; round %d kept (its search moved %.3g %%)", kept,
+                    100 * best_gap)
+    return inputs, normals, depth, depth_m, it
 
 
 # --- the refinement ---------------------------------------------------------------------------
@@ -635,8 +707,9 @@ def refine_near_field(
     for _ in range(options.max_iterations):  # photometric-stereo rounds: cheap, while the geometry settles
         it += 1
         t0 = time.perf_counter()
-        depth, depth_m, residual, inputs = _relight(inputs, used, current_normals, mask, camera, lights, integrate,
-                                                    depth_m, estimate, None)
+        shape, depth_m, residual = _search(inputs, used, current_normals, mask, camera, lights, integrate, depth_m,
+                                           estimate, None)
+        depth, inputs = _place(inputs, shape, depth_m, camera, lights)
         ps = initial_normals(inputs, initial)
         used = ps.used
         new_normals = to_numpy(torch.where(inputs.mask[..., None], ps.normals, torch.full_like(ps.normals, math.nan)))
@@ -651,21 +724,11 @@ def refine_near_field(
     for r in range(options.full_model_rounds):  # the run's model at the settled lights, then relit by it
         if r:
             model = ModelShading.of(result)
-            for _ in range(options.max_iterations if model is not None else 0):  # cheap: the material held fixed
-                it += 1
-                t0 = time.perf_counter()
-                depth, depth_m, residual, inputs = _relight(inputs, inputs.valid, current_normals, mask, camera,
-                                                            lights, integrate, depth_m, estimate, model)
-                model = model.at(inputs)
-                new_normals = corrected_normals(inputs, model)
-                model = dataclasses.replace(model, normals=torch.from_numpy(new_normals).to(model.normals))
-                iterations.append(_record(it, "model-ps", depth, prev_depth, new_normals, current_normals, mask,
-                                          depth_m, reference_depth, camera, residual, t0))
-                prev_depth, current_normals = depth, new_normals
-                last = iterations[-1]
-                if last.normal_change_deg < options.tolerance_deg and (
-                        not estimate or last.depth_change < options.depth_tolerance):
-                    break
+            if model is not None:  # cheap: the material held fixed
+                inputs, current_normals, prev_depth, depth_m, it = _model_rounds(
+                    inputs, current_normals, prev_depth, depth_m, model, mask=mask, camera=camera, lights=lights,
+                    integrate=integrate, estimate=estimate, options=options, reference_depth=reference_depth,
+                    iterations=iterations, it=it, skipped=skipped)
         it += 1
         t0 = time.perf_counter()
         result = recover(inputs)
