@@ -101,8 +101,14 @@ _REFINED_MINIMA = 3
 #: A textured object's bright cells: mask pixels whose albedo is above this share of the 90th percentile.
 _BRIGHT_SHARE = 0.5
 
-#: Least share of the mask the bright cells must cover for the material to be fitted on them alone.
+#: Least share of the mask the bright cells must cover for the material to be fitted on them alone, and least
+#: share the dark ones must (fewer: an untextured object's shading errors, not a texture).
 _MIN_BRIGHT_FRACTION = 0.2
+_MIN_DARK_FRACTION = 0.1
+
+#: Least share of the mask on albedo steps for a capture to count as textured (the untextured bumpy blob at 64²
+#: has 1 of 2314 pixels flagged; the checker-textured sphere 5.5 % at 128²).
+_MIN_EDGE_FRACTION = 0.01
 
 #: Smallest share of the searched move the model rounds take (:func:`_model_rounds`: halved at every overshoot).
 _MIN_RELAXATION = 0.125
@@ -648,21 +654,23 @@ def _fit_model(inputs: RecoveryInputs, albedo: Tensor,
     A texture (albedo steps found in preprocessing: ``inputs.albedo_edges``) leaves dark cells whose shading
     is mostly the untextured surface reflection, and the fit of one material over every pixel can settle in a
     wrong minimum there (the checker-textured sphere under 4 point lights: α 0.12, β 0.93 for the true 0.2,
-    2.0, at a loss 40 % above the true material's). The material (μ, α, β, κ) is then fitted on the pixels
-    whose current ``albedo`` (H, W) is above :data:`_BRIGHT_SHARE` of its 90th percentile (when they cover at
-    least :data:`_MIN_BRIGHT_FRACTION` of the mask), and held (``material_use: fixed``) in the fit of every
-    pixel's normal and albedos. ``recover(inputs)`` fits the model; ``recover(inputs, material)`` with a
+    2.0, at a loss 40 % above the true material's; started from α 0.2 it returns there). With albedo steps on
+    at least :data:`_MIN_EDGE_FRACTION` of the mask, the material (μ, α, β, κ) is fitted on the pixels whose
+    current ``albedo`` (H, W) is above :data:`_BRIGHT_SHARE` of its 90th percentile (when they cover at least
+    :data:`_MIN_BRIGHT_FRACTION` of the mask and leave at least :data:`_MIN_DARK_FRACTION` dark), and held
+    (``material_use: fixed``) in the fit of every pixel's normal and albedos. ``recover(inputs)`` fits the model; ``recover(inputs, material)`` with a
     :class:`~polarshape.recover.coarse_to_fine.KnownMaterial`. A note is added to ``skipped``.
     """
     mask = inputs.mask
     edges = inputs.albedo_edges
     known = mask & torch.isfinite(albedo)
-    if edges is None or not bool((edges & mask).any()) or not bool(known.any()):
+    n_mask = int(mask.sum())
+    if edges is None or int((edges & mask).sum()) < _MIN_EDGE_FRACTION * n_mask or not bool(known.any()):
         return recover(inputs)
     level = _BRIGHT_SHARE * torch.quantile(albedo[known].to(torch.float64), 0.9)
     bright = known & (albedo > level)
-    n_bright, n_mask = int(bright.sum()), int(mask.sum())
-    if n_bright < _MIN_BRIGHT_FRACTION * n_mask or n_bright == n_mask:
+    n_bright = int(bright.sum())
+    if n_bright < _MIN_BRIGHT_FRACTION * n_mask or n_bright > (1 - _MIN_DARK_FRACTION) * n_mask:
         return recover(inputs)
     on_bright = recover(dataclasses.replace(inputs, mask=bright))
     if on_bright.model != "fmbrdf":
