@@ -140,8 +140,8 @@ class NearFieldOptions(BaseModel):
     )
     full_model_rounds: int = Field(
         3, ge=1, le=10, description="fits of the run's model (FMBRDF) once the geometry settled: the first at the "
-        "settled lights, each further one after depth searches on the shading with the model's non-Lambertian part "
-        "taken out (its k_s re-fitted per candidate)"
+        "settled lights, each further one after damped depth searches on the shading with the model's "
+        "non-Lambertian part taken out (its k_s re-fitted per candidate)"
     )
 
 
@@ -658,8 +658,9 @@ def _fit_model(inputs: RecoveryInputs, albedo: Tensor,
     at least :data:`_MIN_EDGE_FRACTION` of the mask, the material (μ, α, β, κ) is fitted on the pixels whose
     current ``albedo`` (H, W) is above :data:`_BRIGHT_SHARE` of its 90th percentile (when they cover at least
     :data:`_MIN_BRIGHT_FRACTION` of the mask and leave at least :data:`_MIN_DARK_FRACTION` dark), and held
-    (``material_use: fixed``) in the fit of every pixel's normal and albedos. ``recover(inputs)`` fits the model; ``recover(inputs, material)`` with a
-    :class:`~polarshape.recover.coarse_to_fine.KnownMaterial`. A note is added to ``skipped``.
+    (``material_use: fixed``) in the fit of every pixel's normal and albedos. ``recover(inputs)`` fits the
+    model; ``recover(inputs, material)`` with a :class:`~polarshape.recover.coarse_to_fine.KnownMaterial` held.
+    A note is added to ``skipped``.
     """
     mask = inputs.mask
     edges = inputs.albedo_edges
