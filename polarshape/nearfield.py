@@ -19,7 +19,9 @@ at ``integration.reference_depth_m`` (preprocessing), then
    placement searched again with the model's non-Lambertian part taken out of the shading and its k_s
    re-fitted at every candidate (:class:`ModelShading`: gloss and the body term's Fresnel factors
    otherwise bias a Lambertian search — the glossy sphere 5 % too near; a k_s fitted at another placement
-   biases it too), L and E moved, normals re-solved; then the model refitted at those lights. The
+   biases it too), L and E moved, normals re-solved — the move to the distance found under-relaxed once it
+   overshoots (:func:`_model_rounds`: distance and normals feed back with a gain beyond −1 on a glossy
+   sphere, and undamped the distance swung ever wider); then the model refitted at those lights. The
    pipeline's recovery stage gives only a Lambertian start when this stage runs (its fit, at lights
    placed from the reference plane, would be discarded).
 
@@ -62,12 +64,14 @@ from torch import Tensor
 
 from polarshape.brdf.baselines import lambertian_stokes
 from polarshape.brdf.fmbrdf import FMBRDFTables, build_tables
+from polarshape.brdf.params import FMBRDF_PARAM_NAMES, FMBRDFParams
 from polarshape.cameras import Camera
 from polarshape.checks import to_numpy
 from polarshape.errors import CaptureError, LightPlacementWarning, NearFieldDepthWarning
 from polarshape.lights import Lights, PointLight
 from polarshape.metrics import angular_error_deg
 from polarshape.normals import NormalsResult, initial_normals
+from polarshape.recover.coarse_to_fine import KnownMaterial
 from polarshape.recover.observations import Observations, RecoveryInputs
 from polarshape.recover.reflectometry import render_parts
 from polarshape.recover.options import InitialNormalsOptions
@@ -93,6 +97,21 @@ _SCAN_POINTS = 240
 
 #: Local minima of the scan refined by Brent's method (the lowest first).
 _REFINED_MINIMA = 3
+
+#: A textured object's bright cells: mask pixels whose albedo is above this share of the 90th percentile.
+_BRIGHT_SHARE = 0.5
+
+#: Least share of the mask the bright cells must cover for the material to be fitted on them alone, and least
+#: share the dark ones must (fewer: an untextured object's shading errors, not a texture).
+_MIN_BRIGHT_FRACTION = 0.2
+_MIN_DARK_FRACTION = 0.1
+
+#: Least share of the mask on albedo steps for a capture to count as textured (the untextured bumpy blob at 64²
+#: has 1 of 2314 pixels flagged; the checker-textured sphere 5.5 % at 128²).
+_MIN_EDGE_FRACTION = 0.01
+
+#: Smallest share of the searched move the model rounds take (:func:`_model_rounds`: halved at every overshoot).
+_MIN_RELAXATION = 0.125
 
 
 class NearFieldOptions(BaseModel):
@@ -120,9 +139,9 @@ class NearFieldOptions(BaseModel):
         8.0, gt=1, le=1000, description="the depth search spans the reference depth divided and multiplied by this"
     )
     full_model_rounds: int = Field(
-        2, ge=1, le=10, description="fits of the run's model (FMBRDF) once the geometry settled: the first at the "
-        "settled lights, each further one after depth searches on the shading with the model's non-Lambertian part "
-        "taken out (its k_s re-fitted per candidate)"
+        3, ge=1, le=10, description="fits of the run's model (FMBRDF) once the geometry settled: the first at the "
+        "settled lights, each further one after damped depth searches on the shading with the model's "
+        "non-Lambertian part taken out (its k_s re-fitted per candidate)"
     )
 
 
@@ -155,6 +174,7 @@ class NearFieldIteration:
             depth (NaN first).
         residual: the depth search's relative Lambertian residual at the chosen placement (NaN without a search).
         seconds: the round's time.
+        relaxation: the model rounds' share of the searched move taken (1: all of it; NaN in other rounds).
     """
 
     iteration: int
@@ -165,6 +185,7 @@ class NearFieldIteration:
     depth_change: float
     residual: float
     seconds: float
+    relaxation: float = math.nan
 
     def as_dict(self) -> dict[str, Any]:
         return {k: (None if isinstance(v, float) and not math.isfinite(v) else v)
@@ -522,29 +543,34 @@ def estimate_depth_placement(
 # --- the loop ---
 
 
-def _relight(inputs: RecoveryInputs, used: Tensor, normals: np.ndarray, mask: np.ndarray, camera: Camera,
-             lights: Lights, integrate: Callable[[np.ndarray, np.ndarray, np.ndarray | None], np.ndarray],
-             depth_m: float, estimate: bool, model: ModelShading | None) -> tuple[np.ndarray, float, float, RecoveryInputs]:
-    """One geometry step: integrate ``normals`` (H, W, 3), place the shape (searched when ``estimate``,
-    near the current median depth ``depth_m``), check the rig against it, and move L and E to its points.
-    Returns (depth (H, W), median depth, search residual, relit inputs)."""
+def _search(inputs: RecoveryInputs, used: Tensor, normals: np.ndarray, mask: np.ndarray, camera: Camera,
+            lights: Lights, integrate: Callable[[np.ndarray, np.ndarray, np.ndarray | None], np.ndarray],
+            depth_m: float, estimate: bool, model: ModelShading | None) -> tuple[np.ndarray, float, float]:
+    """Integrate ``normals`` (H, W, 3) and search the shape's median depth near the current ``depth_m`` (when
+    ``estimate``). Returns (shape (H, W), the distance found (``depth_m`` without a search or when it finds
+    nothing), the search residual (NaN without one))."""
     shape = integrate(normals, mask & np.all(np.isfinite(normals), -1), None)
-    residual = math.nan
-    if estimate:
-        found, residual = estimate_depth_placement(inputs, used, shape, camera, lights, reference_depth=depth_m,
-                                                   search_factor=1.25, scan_points=24, model=model)
-        if math.isfinite(found):
-            depth_m = found
+    if not estimate:
+        return shape, depth_m, math.nan
+    found, residual = estimate_depth_placement(inputs, used, shape, camera, lights, reference_depth=depth_m,
+                                               search_factor=1.25, scan_points=24, model=model)
+    return shape, (found if math.isfinite(found) else depth_m), residual
+
+
+def _place(inputs: RecoveryInputs, shape: np.ndarray, depth_m: float, camera: Camera, lights: Lights
+           ) -> tuple[np.ndarray, RecoveryInputs]:
+    """The ``shape`` placed at ``depth_m`` (:func:`place_depth`), the rig checked against it, and L and E moved to
+    its points: (depth (H, W), relit inputs)."""
     depth = place_depth(shape, depth_m, camera.projection)
     surface = np.isfinite(depth)
     check_near_field_lights(lights, camera.unproject(np.where(surface, depth, np.nan))[surface])
     l_pix, e_pix = pixel_lights(lights, _filled_points(camera, depth, depth_m), like=inputs.stokes)
-    return depth, depth_m, residual, dataclasses.replace(inputs, lights=l_pix, irradiance=e_pix)
+    return depth, dataclasses.replace(inputs, lights=l_pix, irradiance=e_pix)
 
 
 def _record(it: int, kind: str, depth: np.ndarray | None, prev_depth: np.ndarray | None, normals: np.ndarray,
             prev_normals: np.ndarray, mask: np.ndarray, depth_m: float, reference_depth: float, camera: Camera,
-            residual: float, t0: float) -> NearFieldIteration:
+            residual: float, t0: float, relaxation: float = math.nan) -> NearFieldIteration:
     """The :class:`NearFieldIteration` of a round (changes against the previous round's normals and depth)."""
     both = mask & np.all(np.isfinite(normals), -1) & np.all(np.isfinite(prev_normals), -1)
     change = float(np.mean(angular_error_deg(normals, prev_normals, both)[both])) if both.any() else math.nan
@@ -556,7 +582,108 @@ def _record(it: int, kind: str, depth: np.ndarray | None, prev_depth: np.ndarray
     placement = depth_m / reference_depth if camera.projection == "perspective" else depth_m - reference_depth
     logger.info("nearfield round %d (%s normals): median depth %.5g m, normal change %.3g°, depth change %.3g",
                 it, kind, median, change, depth_change)
-    return NearFieldIteration(it, kind, median, placement, change, depth_change, residual, time.perf_counter() - t0)
+    return NearFieldIteration(it, kind, median, placement, change, depth_change, residual, time.perf_counter() - t0,
+                              relaxation)
+
+
+def _model_rounds(
+    inputs: RecoveryInputs, normals: np.ndarray, depth: np.ndarray | None, depth_m: float, model: ModelShading, *,
+    mask: np.ndarray, camera: Camera, lights: Lights,
+    integrate: Callable[[np.ndarray, np.ndarray, np.ndarray | None], np.ndarray], estimate: bool,
+    options: NearFieldOptions, reference_depth: float, iterations: list[NearFieldIteration], it: int,
+    skipped: list[str],
+) -> tuple[RecoveryInputs, np.ndarray, np.ndarray | None, float, int]:
+    """The cheap rounds with the model's material held (module docstring, step 2), damped.
+
+    Each round integrates the current normals (H, W, 3), searches the distance with the model's
+    non-Lambertian part taken out, moves L and E, re-fits k_s and re-solves the normals
+    (:func:`corrected_normals`). The distance and the normals feed back into each other with a negative
+    gain that can exceed 1 in size (a glossy sphere: the distance swung 0.3158 ↔ 0.3206 ↔ 0.3145 ↔
+    0.3228 m, growing): the move to the distance found is under-relaxed in log-distance — all of it at first,
+    halved (down to :data:`_MIN_RELAXATION`) each time the search's move changes sign (an overshoot). Settled:
+    the normal change below ``tolerance_deg``, and the RMS depth change and the search's full move below
+    ``depth_tolerance``. Not settled after ``max_iterations``: the state whose next search moved least (the
+    one nearest the loop's fixed point) is kept.
+
+    Appends the rounds to ``iterations`` (numbered on from ``it``) and a note to ``skipped`` when a round
+    before the last is kept. Returns (inputs, normals, depth (H, W) or None, median depth, last round number).
+    """
+    relaxation, prev_gap = 1.0, math.nan
+    best_gap, best = math.inf, None
+    state = (inputs, normals, depth, depth_m, it)
+    settled = False
+    for _ in range(options.max_iterations):
+        it += 1
+        t0 = time.perf_counter()
+        shape, found, residual = _search(inputs, inputs.valid, normals, mask, camera, lights, integrate, depth_m,
+                                         estimate, model)
+        gap = math.log(found / depth_m)  # the search's full move (0 without a search)
+        if abs(gap) < best_gap:  # measured at the state this round starts from
+            best_gap, best = abs(gap), state
+        if gap * prev_gap < 0:  # overshoot: the distance swings around the fixed point
+            relaxation = max(relaxation / 2, _MIN_RELAXATION)
+        prev_gap = gap
+        depth_m = depth_m * math.exp(relaxation * gap)
+        new_depth, inputs = _place(inputs, shape, depth_m, camera, lights)
+        model = model.at(inputs)
+        new_normals = corrected_normals(inputs, model)
+        model = dataclasses.replace(model, normals=torch.from_numpy(new_normals).to(model.normals))
+        iterations.append(_record(it, "model-ps", new_depth, depth, new_normals, normals, mask, depth_m,
+                                  reference_depth, camera, residual, t0, relaxation))
+        depth, normals = new_depth, new_normals
+        state = (inputs, normals, depth, depth_m, it)
+        last = iterations[-1]
+        if last.normal_change_deg < options.tolerance_deg and (not estimate or (
+                last.depth_change < options.depth_tolerance and abs(gap) < options.depth_tolerance)):
+            settled = True
+            break
+    if not settled and best is not None and best[-1] != it:
+        inputs, normals, depth, depth_m, kept = best
+        skipped.append(f"nearfield: the model rounds did not settle in {options.max_iterations} "
+                       f"(nearfield.max_iterations); kept round {kept}, whose distance the next search moved least "
+                       f"({100 * best_gap:.2g} %)")
+        logger.info("nearfield: model rounds not settled; round %d kept (its search moved %.3g %%)", kept,
+                    100 * best_gap)
+    return inputs, normals, depth, depth_m, it
+
+
+def _fit_model(inputs: RecoveryInputs, albedo: Tensor,
+               recover: Callable[..., NormalsResult], skipped: list[str]) -> NormalsResult:
+    """The run's model fitted to ``inputs``; on a textured object, its material on the bright cells only.
+
+    A texture (albedo steps found in preprocessing: ``inputs.albedo_edges``) leaves dark cells whose shading
+    is mostly the untextured surface reflection, and the fit of one material over every pixel can settle in a
+    wrong minimum there (the checker-textured sphere under 4 point lights: α 0.12, β 0.93 for the true 0.2,
+    2.0, at a loss 40 % above the true material's; started from α 0.2 it returns there). With albedo steps on
+    at least :data:`_MIN_EDGE_FRACTION` of the mask, the material (μ, α, β, κ) is fitted on the pixels whose
+    current ``albedo`` (H, W) is above :data:`_BRIGHT_SHARE` of its 90th percentile (when they cover at least
+    :data:`_MIN_BRIGHT_FRACTION` of the mask and leave at least :data:`_MIN_DARK_FRACTION` dark), and held
+    (``material_use: fixed``) in the fit of every pixel's normal and albedos. ``recover(inputs)`` fits the
+    model; ``recover(inputs, material)`` with a :class:`~polarshape.recover.coarse_to_fine.KnownMaterial` held.
+    A note is added to ``skipped``.
+    """
+    mask = inputs.mask
+    edges = inputs.albedo_edges
+    known = mask & torch.isfinite(albedo)
+    n_mask = int(mask.sum())
+    if edges is None or int((edges & mask).sum()) < _MIN_EDGE_FRACTION * n_mask or not bool(known.any()):
+        return recover(inputs)
+    level = _BRIGHT_SHARE * torch.quantile(albedo[known].to(torch.float64), 0.9)
+    bright = known & (albedo > level)
+    n_bright = int(bright.sum())
+    if n_bright < _MIN_BRIGHT_FRACTION * n_mask or n_bright > (1 - _MIN_DARK_FRACTION) * n_mask:
+        return recover(inputs)
+    on_bright = recover(dataclasses.replace(inputs, mask=bright))
+    if on_bright.model != "fmbrdf":
+        return recover(inputs)
+    material = FMBRDFParams(**{k: float(on_bright.params[k]) for k in FMBRDF_PARAM_NAMES})
+    note = (f"nearfield: textured object (albedo steps): the material fitted on the {n_bright} bright pixels of "
+            f"{n_mask} (albedo above {_BRIGHT_SHARE:g} × its 90th percentile), held for every pixel")
+    if not any(item.startswith("nearfield: textured object") for item in skipped):
+        skipped.append(note)
+    logger.info("%s: ior %.3g, alpha %.3g, beta %.3g, kappa %.3g", note, material.ior, material.alpha, material.beta,
+                material.kappa)
+    return recover(inputs, KnownMaterial(material, "fixed"))
 
 
 # --- the refinement ---------------------------------------------------------------------------
@@ -568,7 +695,7 @@ def refine_near_field(
     camera: Camera,
     lights: Lights,
     *,
-    recover: Callable[[RecoveryInputs], NormalsResult],
+    recover: Callable[..., NormalsResult],
     integrate: Callable[[np.ndarray, np.ndarray, np.ndarray | None], np.ndarray],
     reference_depth: float,
     options: NearFieldOptions = NearFieldOptions(),
@@ -581,7 +708,9 @@ def refine_near_field(
         result: the run's model fitted to ``inputs`` (its mask and model are kept).
         camera: the super-pixel camera (orthographic with metric pixels, or perspective).
         lights: the capture's lights (point lights; directional ones are left as they are).
-        recover: fits the run's model to inputs (the pipeline's ``recover_normals`` with its options).
+        recover: fits the run's model to inputs (the pipeline's ``recover_normals`` with its options);
+            ``recover(inputs, material)`` with a :class:`~polarshape.recover.coarse_to_fine.KnownMaterial` holds
+            that material (a textured object's, fitted on its bright cells: :func:`_fit_model`).
         integrate: (normals (H, W, 3), mask (H, W), depth_init or None) → depth (H, W), the run's
             integration (its gauge: median depth ``reference_depth`` without ``depth_init``).
         reference_depth: the starting guess of the median depth, metres.
@@ -635,8 +764,9 @@ def refine_near_field(
     for _ in range(options.max_iterations):  # photometric-stereo rounds: cheap, while the geometry settles
         it += 1
         t0 = time.perf_counter()
-        depth, depth_m, residual, inputs = _relight(inputs, used, current_normals, mask, camera, lights, integrate,
-                                                    depth_m, estimate, None)
+        shape, depth_m, residual = _search(inputs, used, current_normals, mask, camera, lights, integrate, depth_m,
+                                           estimate, None)
+        depth, inputs = _place(inputs, shape, depth_m, camera, lights)
         ps = initial_normals(inputs, initial)
         used = ps.used
         new_normals = to_numpy(torch.where(inputs.mask[..., None], ps.normals, torch.full_like(ps.normals, math.nan)))
@@ -651,24 +781,14 @@ def refine_near_field(
     for r in range(options.full_model_rounds):  # the run's model at the settled lights, then relit by it
         if r:
             model = ModelShading.of(result)
-            for _ in range(options.max_iterations if model is not None else 0):  # cheap: the material held fixed
-                it += 1
-                t0 = time.perf_counter()
-                depth, depth_m, residual, inputs = _relight(inputs, inputs.valid, current_normals, mask, camera,
-                                                            lights, integrate, depth_m, estimate, model)
-                model = model.at(inputs)
-                new_normals = corrected_normals(inputs, model)
-                model = dataclasses.replace(model, normals=torch.from_numpy(new_normals).to(model.normals))
-                iterations.append(_record(it, "model-ps", depth, prev_depth, new_normals, current_normals, mask,
-                                          depth_m, reference_depth, camera, residual, t0))
-                prev_depth, current_normals = depth, new_normals
-                last = iterations[-1]
-                if last.normal_change_deg < options.tolerance_deg and (
-                        not estimate or last.depth_change < options.depth_tolerance):
-                    break
+            if model is not None:  # cheap: the material held fixed
+                inputs, current_normals, prev_depth, depth_m, it = _model_rounds(
+                    inputs, current_normals, prev_depth, depth_m, model, mask=mask, camera=camera, lights=lights,
+                    integrate=integrate, estimate=estimate, options=options, reference_depth=reference_depth,
+                    iterations=iterations, it=it, skipped=skipped)
         it += 1
         t0 = time.perf_counter()
-        result = recover(inputs)
+        result = _fit_model(inputs, result.albedo, recover, skipped)
         new_normals = to_numpy(result.normals)
         iterations.append(_record(it, "model", None, None, new_normals, current_normals, mask, depth_m,
                                   reference_depth, camera, math.nan, t0))

@@ -249,13 +249,12 @@ def known_material(options: RecoveryOptions) -> KnownMaterial | None:
 
 
 def _fmbrdf_solution(inputs: RecoveryInputs, ps: RobustPSResult, options: RecoveryOptions, *, seed: int,
-                     progress: bool, log: SolveLog) -> _Solution:
+                     progress: bool, log: SolveLog, material: KnownMaterial | None) -> _Solution:
     """Coarse-to-fine FMBRDF solve from the PS normals, fill, optional smoothness prior, render."""
     if not inputs.has_polarisation:
         log.skipped.append("polarisation: no linear polarisation above the noise (no polariser or an unpolarised "
                            "scene): intensity-only fit")
-    several = solve_materials(inputs, ps.normals, options, seed=seed, progress=progress, log=log,
-                              material=known_material(options))
+    several = solve_materials(inputs, ps.normals, options, seed=seed, progress=progress, log=log, material=material)
     normals, k_b, filled = _fill(inputs, several.normals, several.k_b, log)
     if not bool(filled.any()):
         normals, k_b = several.normals, several.k_b
@@ -304,6 +303,7 @@ def recover_normals(
     *,
     seed: int = 0,
     progress: bool = False,
+    material: KnownMaterial | None = None,
 ) -> NormalsResult:
     """Per-pixel normals and the reflectance of preprocessed inputs (module docstring: the steps).
 
@@ -312,6 +312,8 @@ def recover_normals(
         options: the recovery's options (model, material fit, priors).
         initial: the initial normals' photometric-stereo thresholds.
         seed: seed of the subsampling. progress: tqdm bars.
+        material: an FMBRDF material given in memory, used as ``recovery.material`` is (and instead of it);
+            None: ``options.material``.
 
     Returns:
         :class:`NormalsResult` on the inputs' grid.
@@ -327,7 +329,7 @@ def recover_normals(
     ps = initial_normals(crop, initial)
     wait_for_device(ps.normals.device)  # the time of robust PS, not of its queue
     log.timings["init_lambertian"] = time.perf_counter() - t0
-    if options.model == "auto" and options.material is not None:
+    if options.model == "auto" and (options.material is not None or material is not None):
         model = "fmbrdf"
         log.skipped.append("model choice: auto with recovery.material (an FMBRDF material): model 'fmbrdf'")
     else:
@@ -335,7 +337,8 @@ def recover_normals(
     if model == "lambertian":
         sol = _lambertian_solution(crop, ps, log)
     else:
-        sol = _fmbrdf_solution(crop, ps, options, seed=seed, progress=progress, log=log)
+        sol = _fmbrdf_solution(crop, ps, options, seed=seed, progress=progress, log=log,
+                               material=material or known_material(options))
     albedo_rgb = _colour_albedo(crop, sol, model, options, log)
     log.timings["total"] = time.perf_counter() - log.t_start
     return NormalsResult(

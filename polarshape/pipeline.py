@@ -72,6 +72,7 @@ from polarshape.metrics import angular_error_deg, angular_error_stats, depth_rms
 from polarshape.nearfield import NearFieldResult, near_field_active, refine_near_field
 from polarshape.surface.interreflection import estimate_one_bounce
 from polarshape.normals import NormalsResult, recover_normals
+from polarshape.recover.coarse_to_fine import KnownMaterial
 from polarshape.recover.diagnose import dark_capture_cause
 from polarshape.recover.observations import RecoveryInputs
 from polarshape.recover.colour import colour_albedo_summary
@@ -354,8 +355,9 @@ def near_field(capture: Capture, inputs: RecoveryInputs, result: NormalsResult, 
         log.skip("nearfield", "orthographic camera without integration.pixel_size_m")
         return inputs, result, None
 
-    def recover(new_inputs: RecoveryInputs) -> NormalsResult:
-        return recover_normals(new_inputs, config.recovery, config.initial_normals, seed=config.seed, progress=False)
+    def recover(new_inputs: RecoveryInputs, material: KnownMaterial | None = None) -> NormalsResult:
+        return recover_normals(new_inputs, config.recovery, config.initial_normals, seed=config.seed, progress=False,
+                               material=material)
 
     found = refine_near_field(
         inputs, result, camera, lights, recover=recover,
