@@ -19,43 +19,6 @@ def _sphere_cap(h: int, w: int) -> Tensor:
     return torch.stack([x, y, -(1 - x * x - y * y).sqrt()], -1)
 
 
-def test_propagation_moves_pixels_out_of_a_wrong_basin() -> None:
-    """propagate_normals: pixels started at a wrong normal take their neighbours' and keep the lower loss;
-    pixels already right do not move."""
-    h = w = 12
-    truth_img = _sphere_cap(h, w)
-    pixels = torch.ones(h, w, dtype=torch.bool)
-    truth = truth_img[pixels]
-    k = 8
-    t = torch.linspace(0.2, 0.9, k, dtype=torch.float64)
-    phi = torch.arange(k, dtype=torch.float64) * 2.4
-    lights = torch.stack([t.sin() * phi.cos(), t.sin() * phi.sin(), -t.cos()], -1)
-    view = torch.tensor([0.0, 0.0, -1.0], dtype=torch.float64).expand(truth.shape[0], 3)
-    material = dict(ior=1.5, alpha=0.3, beta=2.0, kappa=0.0)
-    s = fmbrdf_stokes(truth[:, None], lights[None], view[:, None], k_s=1.0, k_b=0.5, **material)
-    p = truth.shape[0]
-    obs = Observations(s, torch.ones(s.shape[:2], dtype=s.dtype), lights.expand(p, k, 3), torch.ones(p, k, dtype=s.dtype), view)
-    problem = NormalProblem.build(build_tables(**material), obs.stokes, 1.0, True, 0.5, True, 1e-3)
-    start_img = truth_img.clone()
-    wrong = torch.zeros(h, w, dtype=torch.bool)
-    wrong[4:7, 4:7] = True
-    start_img[wrong] = torch.nn.functional.normalize(torch.tensor([0.6, 0.5, -0.6], dtype=torch.float64), dim=0)
-    normals = start_img[pixels].clone()
-    r, k_b = problem.residual(normals, obs)
-    loss = problem.loss(r)
-    before = loss.clone()
-    out, _, loss_out, moved = propagate_normals(problem, normals, k_b, loss, obs, neighbour_index(pixels), max_iter=0)
-    err = angular_error_deg(out, truth)
-    w_flat = wrong[pixels]
-    assert moved >= int(w_flat.sum())
-    assert float(err[w_flat].max()) < 10.0  # a neighbour's normal (≈ 3–6° off), not the 40°+ start
-    assert float(err[~w_flat].max()) < 1e-9  # right pixels untouched
-    assert bool((loss_out <= before).all()) and float(loss_out[w_flat].sum()) < 0.2 * float(before[w_flat].sum())
-    # and the polish lands on the truth
-    polished, *_ = refine_normals(problem, out.clone(), obs, max_iter=20)
-    assert float(angular_error_deg(polished, truth).max()) < 0.05
-
-
 class _Counting(NormalProblem):
     """A NormalProblem that counts the pixels it evaluates."""
 
@@ -79,6 +42,33 @@ def _cap_problem(n: int = 10) -> tuple[_Counting, Observations, Tensor]:
                        view)
     base = NormalProblem.build(build_tables(**material), obs.stokes, 1.0, True, 0.5, True, 1e-3)
     return _Counting(**vars(base)), obs, truth
+
+
+def test_propagation_moves_pixels_out_of_a_wrong_basin() -> None:
+    """propagate_normals: pixels started at a wrong normal take their neighbours' and keep the lower loss;
+    pixels already right do not move."""
+    h = w = 12
+    problem, obs, truth = _cap_problem(h)
+    truth_img = truth.reshape(h, w, 3)
+    pixels = torch.ones(h, w, dtype=torch.bool)
+    start_img = truth_img.clone()
+    wrong = torch.zeros(h, w, dtype=torch.bool)
+    wrong[4:7, 4:7] = True
+    start_img[wrong] = torch.nn.functional.normalize(torch.tensor([0.6, 0.5, -0.6], dtype=torch.float64), dim=0)
+    normals = start_img[pixels].clone()
+    r, k_b = problem.residual(normals, obs)
+    loss = problem.loss(r)
+    before = loss.clone()
+    out, _, loss_out, moved = propagate_normals(problem, normals, k_b, loss, obs, neighbour_index(pixels), max_iter=0)
+    err = angular_error_deg(out, truth)
+    w_flat = wrong[pixels]
+    assert moved >= int(w_flat.sum())
+    assert float(err[w_flat].max()) < 10.0  # a neighbour's normal (≈ 3–6° off), not the 40°+ start
+    assert float(err[~w_flat].max()) < 1e-9  # right pixels untouched
+    assert bool((loss_out <= before).all()) and float(loss_out[w_flat].sum()) < 0.2 * float(before[w_flat].sum())
+    # and the polish lands on the truth
+    polished, *_ = refine_normals(problem, out.clone(), obs, max_iter=20)
+    assert float(angular_error_deg(polished, truth).max()) < 0.05
 
 
 def test_converged_pixels_are_not_evaluated_again() -> None:
