@@ -24,6 +24,7 @@ import torch
 
 from polarshape.cameras import OrthographicCamera
 from polarshape.lights import DirectionalLight, Lights
+from polarshape.scene.geometry import crater_depth_map
 from polarshape.surface.interreflection import estimate_one_bounce
 
 LIGHTS = [(10, 0), (20, 120), (20, 240), (35, 60), (35, 180), (35, 300), (50, 30), (50, 150), (50, 270), (60, 90),
@@ -38,29 +39,21 @@ def main() -> None:
     ap.add_argument("--save", type=Path, help="write the (K, H, W) S0 bounce here (.npy)")
     ap.add_argument("--compare", type=Path, help="compare with a saved S0 bounce (.npy)")
     args = ap.parse_args()
-    n, radius, dish_depth = args.size, 0.008, 0.004
+    n = args.size
     pixel = 0.0256 / n
-    yy, xx = np.mgrid[0:n, 0:n].astype(np.float64)
-    x, y = (xx - (n - 1) / 2) * pixel, (yy - (n - 1) / 2) * pixel
-    r = np.hypot(x, y)
-    q = np.clip(1 - (r / radius) ** 2, 0, None)
-    slope = -4 * dish_depth * q / radius**2  # dz/dr / r
-    normals = np.stack([slope * x, slope * y, -np.ones_like(x)], -1)
-    normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
-    plate = (np.abs(x) < 0.0115) & (np.abs(y) < 0.0115)
-    depth = np.where(plate, 0.5 + dish_depth * q**2, np.nan)
+    depth, normals = crater_depth_map(n, pixel, radius=0.008, depth=0.004, half_width=0.0115, distance=0.5)
     view = torch.zeros(n, n, 3)
     view[..., 2] = -1.0
     lights = Lights(tuple(DirectionalLight((math.sin(math.radians(z)) * math.cos(math.radians(a)),
                                             math.sin(math.radians(z)) * math.sin(math.radians(a)),
                                             -math.cos(math.radians(z)))) for z, a in LIGHTS))
     t0 = time.perf_counter()
-    b = estimate_one_bounce(torch.tensor(np.where(plate[..., None], normals, np.nan), dtype=torch.float32),
+    b = estimate_one_bounce(torch.tensor(normals, dtype=torch.float32),
                             torch.full((n, n), 0.7), depth, OrthographicCamera(n, n, pixel, even=False), view, lights,
                             PARAMS, max_pixels=args.max_pixels)
     seconds = time.perf_counter() - t0
     s0 = b.stokes[:, 0].double().numpy()  # (K, H, W)
-    dish = r < radius
+    dish = np.nan_to_num(depth, nan=0.5) > 0.5  # the dish sinks below the plate (z = 0.5)
     print(f"{n}² super-pixels, max_pixels {args.max_pixels}: stride {b.stride}, {100 * b.rays_hit:.2f} % of the rays hit, "
           f"mean S0 bounce in the dish {s0[:, dish].mean():.5g}, {seconds:.2f} s")
     if args.save:

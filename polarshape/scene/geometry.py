@@ -550,6 +550,26 @@ def crater_mesh(center: Sequence[float], radius: float, depth: float, half_width
     return trimesh.Trimesh(vertices, faces, process=False)
 
 
+def crater_depth_map(size: int, pixel: float, *, radius: float, depth: float, half_width: float,
+                     distance: float) -> tuple[np.ndarray, np.ndarray]:
+    """The surface of :func:`crater_mesh` (centred on the optical axis at z = ``distance``) seen by a
+    ``size`` × ``size`` orthographic camera of pixel pitch ``pixel`` (metres), as a depth map and its
+    analytic normals: ∇z = −4 · depth · q · (x, y) / radius² with q = 1 − (ρ / radius)², N ∝ (∂z/∂x, ∂z/∂y, −1).
+
+    Returns:
+        depth (size, size), camera-frame z, NaN off the plate; normals (size, size, 3), unit, facing the
+        camera (n_z < 0), NaN off the plate.
+    """
+    yy, xx = np.mgrid[0:size, 0:size].astype(np.float64)
+    x, y = (xx - (size - 1) / 2) * pixel, (yy - (size - 1) / 2) * pixel
+    q = np.clip(1.0 - (np.hypot(x, y) / radius) ** 2, 0.0, None)
+    slope = -4.0 * depth * q / radius**2  # (dz/dρ) / ρ
+    normals = np.stack([slope * x, slope * y, -np.ones_like(x)], -1)
+    normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
+    plate = (np.abs(x) < half_width) & (np.abs(y) < half_width)
+    return np.where(plate, distance + depth * q**2, np.nan), np.where(plate[..., None], normals, np.nan)
+
+
 class CraterShape(MeshShape):
     """:func:`crater_mesh` as a shape: an open surface seen from its front (two-sided)."""
 

@@ -9,7 +9,7 @@ import pytest
 import torch
 import trimesh
 
-from polarshape.scene.geometry import BlobShape, MeshShape, PlaneShape, SphereShape, TorusShape, plane_axes
+from polarshape.scene.geometry import BlobShape, MeshShape, PlaneShape, SphereShape, TorusShape, crater_depth_map, crater_mesh, plane_axes
 
 F64 = torch.float64
 
@@ -182,3 +182,20 @@ def test_mesh_from_missing_or_broken_file_names_the_file(tmp_path):
     bad.write_text("not a mesh")
     with pytest.raises(ValueError, match="broken.ply"):
         MeshShape.from_file(str(bad))
+
+
+def test_crater_depth_map_matches_the_crater_mesh_and_its_normals_its_depth() -> None:
+    """The depth map lies on crater_mesh's surface (same grid, same z), and its analytic normals are
+    those of the depth's own finite-difference gradient (a sign or factor slip would show)."""
+    n, pixel = 257, 0.0256 / 256
+    depth, normals = crater_depth_map(n, pixel, radius=0.008, depth=0.004, half_width=0.0128, distance=0.5)
+    mesh = crater_mesh((0.0, 0.0, 0.5), 0.008, 0.004, 0.0128, n)  # vertices on the same n × n grid
+    inside = np.isfinite(depth)
+    assert inside[1:-1, 1:-1].all()
+    np.testing.assert_allclose(depth[inside], mesh.vertices[:, 2].reshape(n, n)[inside], atol=1e-12)
+    dzdy, dzdx = np.gradient(depth, pixel)
+    fd = np.stack([dzdx, dzdy, -np.ones_like(depth)], -1)
+    fd /= np.linalg.norm(fd, axis=-1, keepdims=True)
+    cos = (fd[2:-2, 2:-2] * normals[2:-2, 2:-2]).sum(-1)
+    assert float(np.degrees(np.arccos(np.clip(cos, -1, 1))).max()) < 1.0
+    assert (normals[inside][:, 2] < 0).all() and np.allclose(np.linalg.norm(normals[inside], axis=-1), 1.0)

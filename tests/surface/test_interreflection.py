@@ -10,6 +10,7 @@ import torch
 
 from polarshape.cameras import OrthographicCamera, PerspectiveCamera
 from polarshape.lights import DirectionalLight, Lights
+from polarshape.scene.geometry import crater_depth_map
 from polarshape.surface.interreflection import estimate_one_bounce
 
 PARAMS = {"ior": 1.5, "k_s": 1.0, "alpha": 0.3, "beta": 2.0, "kappa": 0.0}
@@ -22,18 +23,10 @@ LIGHTS = Lights(tuple(
 
 def _crater(n: int) -> tuple[np.ndarray, torch.Tensor, OrthographicCamera, np.ndarray]:
     """An n×n orthographic view of a plate with a dish (the crater scene's shape): depth, normals, camera, dish mask."""
-    radius, dish_depth, pixel = 0.008, 0.004, 0.0256 / n
+    pixel = 0.0256 / n
     camera = OrthographicCamera(n, n, pixel, even=False)
-    yy, xx = np.mgrid[0:n, 0:n].astype(np.float64)
-    x, y = (xx - (n - 1) / 2) * pixel, (yy - (n - 1) / 2) * pixel
-    r = np.hypot(x, y)
-    q = np.clip(1 - (r / radius) ** 2, 0, None)
-    slope = -4 * dish_depth * q / radius**2  # dz/dr / r
-    normals = np.stack([slope * x, slope * y, -np.ones_like(x)], -1)
-    normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
-    plate = (np.abs(x) < 0.0115) & (np.abs(y) < 0.0115)
-    depth = np.where(plate, 0.5 + dish_depth * q**2, np.nan)
-    return depth, torch.tensor(np.where(plate[..., None], normals, np.nan)), camera, r < radius
+    depth, normals = crater_depth_map(n, pixel, radius=0.008, depth=0.004, half_width=0.0115, distance=0.5)
+    return depth, torch.tensor(normals), camera, np.nan_to_num(depth, nan=0.5) > 0.5  # the dish: below the plate
 
 
 def _bounce(depth: np.ndarray, normals: torch.Tensor, camera, max_pixels: int):  # noqa: ANN001, ANN202
