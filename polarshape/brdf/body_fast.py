@@ -327,23 +327,6 @@ def _trilinear_flat(channels: tuple[Tensor, ...], sizes: tuple[int, int, int], i
     return out
 
 
-def trilinear(table: Tensor, i: Tensor, j: Tensor, k: Tensor) -> Tensor:
-    """Trilinear interpolation of a channels-last table at fractional indices.
-
-    Args:
-        table: (A, B, C, K) values.
-        i, j, k: (...) fractional indices along A, B, C (clamped to the table).
-
-    Returns:
-        (..., K), differentiable in the indices and the table (eight gathers per channel: about
-        twice as fast on CPU as ``grid_sample`` on the channels-first layout).
-    """
-    a, b, c, n_ch = table.shape
-    flat = table.reshape(-1, n_ch).t()
-    i, j, k = torch.broadcast_tensors(i, j, k)
-    return torch.stack(_trilinear_flat(tuple(flat.contiguous()), (a, b, c), i, j, k), dim=-1)
-
-
 def _lookup(table: BodyTable, dtype: torch.dtype) -> tuple[Tensor, ...]:
     """The tables :func:`body_parts` interpolates, in ``dtype`` (cached on ``table`` when its values
     carry no autograd history).
