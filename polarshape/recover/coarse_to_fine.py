@@ -261,6 +261,8 @@ KAPPA_MIN_GAIN = 0.01
 #: but 7.3 % on the α 0.3 blob. 25 % keeps κ where it dominates the fit and never on the mismatch
 #: measured — a thin margin on both sides: the loss alone cannot decide κ.
 KAPPA_KEEP_GAIN = 0.25
+#: Body-table grid (θ_V, θ_L) of the κ test's loss and Jacobian (the full tables' is 65).
+KAPPA_TEST_GRID = 17
 
 
 def _table_names(polarised: bool) -> tuple[str, ...]:
@@ -277,18 +279,25 @@ def _kappa_decision(fit: JointResult, obs_sub: Observations, names: tuple[str, .
     most. Returns the κ fit when kept, else ``fit`` (its skip recorded)."""
     t1 = time.perf_counter()
     log.count("kappa_probes")
-    # the test on coarse tables (κ tables cost 0.1–0.6 s a build) and to a tenth of the decision's 1 %
-    # (tol 1e-3: κ-free data stop after one iteration); a kept κ is polished on full ones to 1e-5
-    trial, gain = nested_kappa(fit, obs_sub, names=names, **{**kwargs, "n_grid": 33, "jac_grid": 17, "tol": 1e-3})
+    # gains relative to max(loss, loss_floor(δ)), as the alternation's window: noise-free κ-free data
+    # have losses of 1e-34, whose ratios are rounding noise (they read as ±1e4 % gains)
+    floor = loss_floor(float(kwargs["delta"]))  # type: ignore[arg-type]
+    floor_sum = floor * float(obs_sub.weight.sum())  # the same floor for sums of per-pixel losses
+    # the test on coarse tables (κ tables cost 0.1–0.6 s a build; loss and Jacobian on one grid, so the
+    # point's tables serve the Jacobian too), to a tenth of the decision's 1 % (tol 1e-3: κ-free data stop
+    # after one iteration), stopped once its gain clearly ends below KAPPA_KEEP_GAIN; a kept κ is
+    # polished on full tables to 1e-5
+    trial, gain = nested_kappa(fit, obs_sub, names=names, decide_gain=KAPPA_KEEP_GAIN,
+                               **{**kwargs, "n_grid": KAPPA_TEST_GRID, "jac_grid": KAPPA_TEST_GRID, "tol": 1e-3})
     _joint_record(trial, level, "joint_kappa", log)
-    robust = trimmed_gain(trial.initial_pixel_loss, trial.pixel_loss)
+    robust = trimmed_gain(trial.initial_pixel_loss, trial.pixel_loss, floor=floor_sum)
     logger.info("level %d nested κ (coarse tables): κ %.3g, gain %.2f%%, without the top 2%% %.2f%%", level,
                 trial.params.kappa, 100 * gain, 100 * robust)
     if gain >= KAPPA_KEEP_GAIN and robust >= KAPPA_MIN_GAIN:
         polished = joint_solve(trial.normals, obs_sub, trial.params, names=names + ("kappa",), **kwargs)
         _joint_record(polished, level, "joint_kappa", log)
-        gain = (fit.loss - polished.loss) / max(fit.loss, 1e-300)  # both on full tables
-        robust = trimmed_gain(fit.pixel_loss, polished.pixel_loss)
+        gain = (fit.loss - polished.loss) / max(fit.loss, floor)  # both on full tables
+        robust = trimmed_gain(fit.pixel_loss, polished.pixel_loss, floor=floor_sum)
         trial = polished
     log.timings["kappa_test"] = log.timings.get("kappa_test", 0.0) + time.perf_counter() - t1
     if gain >= KAPPA_KEEP_GAIN and robust >= KAPPA_MIN_GAIN:

@@ -52,6 +52,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import torch
@@ -282,7 +283,9 @@ def _jacobians(model: _Model, st: _State, step_h: float) -> tuple[Tensor, Tensor
     if model.table_names:
         # coarse tables (``jac_grid``) on the base point's layout: cheap, and smooth in the parameter
         coarse = replace(model, n_grid=model.jac_grid)
-        r_c = coarse.problem(coarse.tables(st.vals), st.vals).residual(st.n, obs)[0].reshape(p, -1)
+        # the point's own tables when the loss is on the Jacobian's grid (the same build: no second one)
+        base_tables = st.problem.tables if model.jac_grid == model.n_grid else coarse.tables(st.vals)
+        r_c = coarse.problem(base_tables, st.vals).residual(st.n, obs)[0].reshape(p, -1)
         for name in model.table_names:
             h = _fd_step(name, st.vals[name])
             vals = {**st.vals, name: _from_u(name, _to_u(name, st.vals[name]) + h)}
@@ -311,7 +314,7 @@ def loss_floor(delta: float) -> float:
 def joint_solve(normals: Tensor, obs: Observations, params: FMBRDFParams, *, names: tuple[str, ...] | list[str],
                 per_pixel_albedo: bool = True, polarised: bool = True, delta: float = 0.01, max_iter: int = 20,
                 tol: float = 1e-5, step_h: float = 2e-3, max_step: float = 0.25, n_grid: int = 65,
-                jac_grid: int = 33) -> JointResult:
+                jac_grid: int = 33, stop: Callable[[float, list[dict]], bool] | None = None) -> JointResult:
     """Normals and material by one Levenberg–Marquardt with the Schur complement (module docstring).
 
     Args:
@@ -325,6 +328,8 @@ def joint_solve(normals: Tensor, obs: Observations, params: FMBRDFParams, *, nam
         max_iter: most LM iterations. tol: relative loss change that ends the solve.
         step_h: normal forward-difference step; max_step: largest normal step (tangent units).
         n_grid: body-table grid of the loss; jac_grid: the (coarser, cheaper) one of the globals' Jacobian.
+        stop: called after each iteration with the initial loss and the history so far; True ends the
+            solve (a caller's test that is already decided, :func:`nested_kappa`).
 
     Returns:
         :class:`JointResult`.
@@ -344,7 +349,7 @@ def joint_solve(normals: Tensor, obs: Observations, params: FMBRDFParams, *, nam
         # the linear globals start at their closed-form optimum for the start normals and material
         k_s, k_b = solve_albedos(st.surf, st.body, obs, per_pixel=per_pixel_albedo, polarised=polarised)
         vals0.update(k_s=float(k_s), k_b=vals0["k_b"] if per_pixel_albedo else float(k_b[0]))
-        st = _state(model, vals0, st.n)
+        st = _state(model, vals0, st.n, model.problem(st.problem.tables, vals0))  # the albedos need no new tables
         initial, initial_pp = float(_mean(st.loss_pp, obs)), st.loss_pp
         cand = _highlight_normals(obs)
         st, _ = _try_highlights(model, st, cand)
@@ -411,7 +416,7 @@ def joint_solve(normals: Tensor, obs: Observations, params: FMBRDFParams, *, nam
                             "accepted": accepted, "moved": moved, "seconds": time.perf_counter() - t0,
                             **{k: st.vals[k] for k in fitted}})
             logger.debug("joint %d: loss %.6g (rel %.2e) %s", it, total, rel, {k: st.vals[k] for k in fitted})
-            if not accepted or rel < tol:
+            if not accepted or rel < tol or (stop is not None and stop(initial, history)):
                 break
     k_b = st.k_b
     out = FMBRDFParams(**{k: st.vals[k] for k in (*TABLE_PARAMS, "k_s", "k_b")})
@@ -422,8 +427,28 @@ def joint_solve(normals: Tensor, obs: Observations, params: FMBRDFParams, *, nam
                        unit(normals), replace(params), st.loss_pp, initial_pp)
 
 
+def _clearly_below(target: float, floor: float) -> Callable[[float, list[dict]], bool]:
+    """A :func:`joint_solve` ``stop`` test: True once the solve's relative gain over its initial loss
+    (relative to max(initial, ``floor``)) will clearly end below ``target``. From the third iteration
+    on, with the last two relative changes c₋₁, c (geometric rate ρ = c / c₋₁ < ½), the rest of the
+    descent is at most c·ρ / (1 − ρ); stop when the gain so far plus twice that is below ``target``."""
+
+    def stop(initial: float, history: list[dict]) -> bool:
+        if len(history) < 3:
+            return False
+        prev, last = history[-2]["rel_change"], history[-1]["rel_change"]
+        if not (0.0 < last < 0.5 * prev):
+            return False
+        rho = last / prev
+        gain = (initial - history[-1]["loss"]) / max(initial, floor)
+        return gain + 2.0 * last * rho / (1.0 - rho) < target
+
+    return stop
+
+
 def nested_kappa(start: JointResult, obs: Observations, *, fresh_max_iter: int = 6, min_gain: float = 0.01,
-                 corner_ratio: float = 2.0, **kwargs: object) -> tuple[JointResult, float]:
+                 corner_ratio: float = 2.0, decide_gain: float | None = None,
+                 **kwargs: object) -> tuple[JointResult, float]:
     """Add κ to a κ = 0 optimum: the joint solve from ``start`` (its normals and material, κ = 0)
     with κ among the fitted names; the loss can only fall from the start (module docstring).
 
@@ -443,17 +468,24 @@ def nested_kappa(start: JointResult, obs: Observations, *, fresh_max_iter: int =
         start: the κ = 0 solve. obs: its observations. fresh_max_iter: the most iterations from
             ``start``'s own start. min_gain: the relative gain from the optimum (with κ ≥ 1) that makes
             the second start unnecessary. corner_ratio: how far (a factor in α or β) the κ = 0 solve must have
-            moved from its start for the second start. kwargs: :func:`joint_solve`'s keywords (``names`` gets ``kappa`` added).
+            moved from its start for the second start. decide_gain: the gain a caller's decision needs; the
+            solve from the optimum stops once its gain clearly ends below it (:func:`_clearly_below`: a
+            test, not a fit). kwargs: :func:`joint_solve`'s keywords (``names`` gets ``kappa`` added).
 
     Returns:
         The κ solve (its ``initial_loss`` and ``initial_pixel_loss``: the κ = 0 optimum's, on the κ
-        solve's tables) and its relative gain (κ = 0 optimum's loss − final loss) / κ = 0 optimum's loss ≥ 0.
+        solve's tables) and its relative gain (κ = 0 optimum's loss − final loss) / max(that loss,
+        :func:`loss_floor`) ≥ 0 (noise-free κ-free data: losses of 1e-34 compare rounding, the floor
+        makes that gain 0).
     """
     base = tuple(kwargs.pop("names", ()))  # type: ignore[arg-type]
     names = base + ("kappa",)
-    fit = joint_solve(start.normals, obs, replace(start.params, kappa=0.0), names=names, **kwargs)  # type: ignore[arg-type]
+    floor = loss_floor(float(kwargs.get("delta", 0.01)))  # type: ignore[arg-type]
+    stop = None if decide_gain is None else _clearly_below(decide_gain, floor)
+    fit = joint_solve(start.normals, obs, replace(start.params, kappa=0.0), names=names, stop=stop,
+                      **kwargs)  # type: ignore[arg-type]
     ref = fit.initial_loss  # the κ = 0 optimum on these tables
-    stuck = (ref - fit.loss) < min_gain * ref or fit.params.kappa < 1.0  # κ did not grow, or did not pay
+    stuck = (ref - fit.loss) < min_gain * max(ref, floor) or fit.params.kappa < 1.0  # κ did not grow, or did not pay
     s0 = start.start_params
     # a corner: the κ = 0 solve moved the lobe far (×2 or more in α or β) from where it started
     cornered = s0 is not None and any(abs(math.log(getattr(start.params, n) / max(getattr(s0, n), 1e-12))) >=
@@ -468,11 +500,11 @@ def nested_kappa(start: JointResult, obs: Observations, *, fresh_max_iter: int =
                     fit.params.kappa, fresh.loss, fresh.params.kappa)
         if fresh.loss < fit.loss:
             fit = replace(fresh, initial_loss=ref, initial_pixel_loss=fit.initial_pixel_loss)
-    gain = (ref - fit.loss) / max(ref, 1e-300)
+    gain = (ref - fit.loss) / max(ref, floor)
     return fit, max(gain, 0.0)
 
 
-def trimmed_gain(base_loss: Tensor, trial_loss: Tensor, trim: float = 0.02) -> float:
+def trimmed_gain(base_loss: Tensor, trial_loss: Tensor, trim: float = 0.02, floor: float = 0.0) -> float:
     """Relative loss gain of a trial fit over a base fit on the same pixels, without the pixels that
     gained most: Σ' (base − trial) / Σ' base over all but the ``ceil(trim · P)`` (at least one) pixels
     with the largest gain base − trial.
@@ -484,6 +516,8 @@ def trimmed_gain(base_loss: Tensor, trial_loss: Tensor, trim: float = 0.02) -> f
     Args:
         base_loss, trial_loss: (P,) per-pixel losses (:attr:`JointResult.pixel_loss`) of the two fits.
         trim: share of the pixels left out.
+        floor: least denominator, in the units of the summed losses (a caller's :func:`loss_floor` × the
+            observation weight: on noise-free data Σ' base is rounding noise, 1e-34).
 
     Returns:
         The trimmed relative gain (negative where the trial fits the rest worse).
@@ -493,4 +527,4 @@ def trimmed_gain(base_loss: Tensor, trial_loss: Tensor, trim: float = 0.02) -> f
     keep = torch.ones_like(d, dtype=torch.bool)
     if k > 0:
         keep[d.topk(k).indices] = False
-    return float(d[keep].sum() / base_loss[keep].sum().clamp_min(1e-300))
+    return float(d[keep].sum() / base_loss[keep].sum().clamp_min(max(floor, 1e-300)))

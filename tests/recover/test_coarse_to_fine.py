@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import pytest
 import torch
 
@@ -94,6 +96,10 @@ def test_default_kappa_test_is_a_nested_fit_that_never_reports_a_rise() -> None:
     assert state.params.kappa == 0.0 and log.counts["kappa_probes"] == 1
     assert "nested" in said and "by -" not in said and "+" not in said.split("without")[0], said
     assert "kappa_test" in log.timings
+    # noise-free: the gains are relative to max(loss, loss_floor(δ)), not to losses of 1e-34 (the
+    # message read "-26102560433.46 % without the 2 % of pixels that gained most")
+    percents = [float(x) for x in re.findall(r"([-+]?[0-9.]+)%", said)]
+    assert percents and all(abs(x) <= 100.0 for x in percents), said
 
 
 @pytest.mark.slow

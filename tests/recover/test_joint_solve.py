@@ -11,7 +11,7 @@ import torch
 from polarshape.brdf.params import FMBRDFParams
 from polarshape.metrics import angular_error_deg
 from polarshape.recover.coarse_to_fine import solve_fmbrdf
-from polarshape.recover.joint_solve import joint_solve, nested_kappa, schur_step, trimmed_gain
+from polarshape.recover.joint_solve import joint_solve, loss_floor, nested_kappa, schur_step, trimmed_gain
 from polarshape.recover.observations import Observations, flatten_observations
 from polarshape.recover.options import RecoveryOptions
 
@@ -157,6 +157,48 @@ def test_nested_kappa_also_starts_from_the_kappa_free_solves_start() -> None:
     corner = replace(base, params=replace(base.params, alpha=0.01, beta=6.0))
     fit, gain = nested_kappa(corner, obs, names=("ior", "alpha", "beta"), max_iter=5, **kw)
     assert gain > 0.5 and fit.params.kappa > 10.0, (gain, fit.params)
+
+
+@pytest.mark.slow
+def test_nested_kappa_gain_on_noise_free_kappa_free_data_is_measured_against_the_loss_floor() -> None:
+    # noise-free κ = 0 data: the κ = 0 optimum's loss is table discretisation (1e-11 on these tables) and
+    # rounding (1e-26 on full ones); the gain was taken relative to that raw loss and read 61 % for a
+    # κ of 0.03; relative to max(loss, loss_floor(δ)) it is no gain at all
+    inputs, truth = _sphere_inputs(10)
+    m = inputs.mask
+    obs = flatten_observations(inputs, m)
+    kw = {"names": ("ior", "alpha", "beta"), "delta": 1e-3}
+    base = joint_solve(truth[m], obs, FMBRDFParams(ior=1.5, alpha=0.3, beta=2.0), max_iter=3, **kw)
+    fit, gain = nested_kappa(base, obs, max_iter=5, n_grid=33, jac_grid=17, **kw)
+    assert fit.loss <= fit.initial_loss < loss_floor(1e-3)
+    assert 0.0 <= gain < 0.01, (gain, fit.initial_loss, fit.loss)
+
+
+def test_joint_solve_stop_ends_the_solve_when_the_caller_has_decided() -> None:
+    inputs, truth = _sphere_inputs(10, alpha=0.3)
+    m = inputs.mask
+    obs = flatten_observations(inputs, m)
+    start = torch.nn.functional.normalize(truth[m] + torch.tensor([0.06, -0.04, 0.0], dtype=torch.float64), dim=-1)
+    kw = {"names": ("alpha",), "delta": 1e-3, "max_iter": 6, "tol": 1e-12, "n_grid": 17, "jac_grid": 17}
+    seen: list[tuple[float, int]] = []
+
+    def stop(initial: float, history: list[dict]) -> bool:
+        seen.append((initial, len(history)))
+        return len(history) >= 2
+
+    fit = joint_solve(start, obs, FMBRDFParams(ior=1.5, alpha=0.4, beta=2.0), stop=stop, **kw)
+    assert fit.iterations == 2 and [n for _, n in seen] == [1, 2], (fit.iterations, seen)
+    assert seen[0][0] == fit.initial_loss and not fit.converged
+
+
+def test_trimmed_gain_is_measured_against_a_floor() -> None:
+    # noise-free data: per-pixel losses of 1e-34 are rounding; their ratio is no gain (it read −2.6e10 %)
+    base = torch.full((100,), 1e-34, dtype=torch.float64)
+    trial = base * torch.linspace(0.0, 3.0, 100, dtype=torch.float64)
+    assert abs(trimmed_gain(base, trial)) > 0.1  # the raw ratio: rounding read as a gain or a loss
+    assert abs(trimmed_gain(base, trial, floor=1e-8)) < 1e-20
+    assert trimmed_gain(0.95 * torch.ones(100, dtype=torch.float64) + 0.05, 0.95 * torch.ones(100, dtype=torch.float64),
+                        floor=1e-8) == pytest.approx(0.05)  # a floor under the losses changes nothing
 
 
 def test_trimmed_gain_leaves_out_a_gain_carried_by_a_few_pixels() -> None:
