@@ -14,8 +14,9 @@ on a textured one, and the preprocessing time.
   every flagged block is a false positive.
 
 Prints a Markdown table: blocks in the mask, flagged adjacent / on the edge, recall, false flags, the detector's
-seconds and the whole preprocessing's (``preprocess_capture``, the same call ``polarshape run`` makes).
-Run it with ``PYTHONPATH`` at two checkouts to compare them (deterministic counts; seconds under load are noisy).
+CPU seconds and the whole preprocessing's (``preprocess_capture``, the same call ``polarshape run`` makes; CPU
+time of this process, one thread: steadier than the wall clock on a loaded machine). Run it with ``PYTHONPATH`` at
+two checkouts to compare them (the counts are deterministic).
 """
 
 from __future__ import annotations
@@ -51,16 +52,16 @@ def _detect(capture_path: Path) -> tuple[dict, float]:
     find = preprocess.find_albedo_edges
 
     def spy(block_s0: torch.Tensor, usable: torch.Tensor, **kwargs: object):
-        t0 = time.perf_counter()
+        t0 = time.process_time()
         edges = find(block_s0, usable, **kwargs)
-        seen.update(edges=edges, usable=usable, seconds=time.perf_counter() - t0)
+        seen.update(edges=edges, usable=usable, seconds=time.process_time() - t0)
         return edges
 
     preprocess.find_albedo_edges = spy
     try:
-        t0 = time.perf_counter()
+        t0 = time.process_time()
         inputs = preprocess.preprocess_capture(capture, points=points, polarisation_check=False)
-        seconds = time.perf_counter() - t0
+        seconds = time.process_time() - t0
     finally:
         preprocess.find_albedo_edges = find
     seen["mask"] = inputs.mask
@@ -112,8 +113,8 @@ def main() -> None:
     parser.add_argument("--plain", nargs="*", default=[], help="captures of untextured objects")
     args = parser.parse_args()
     torch.set_num_threads(1)
-    print("| capture | blocks in mask | adjacent | on the edge | recall near (on) | false flags | detector s "
-          "| preprocessing s |")
+    print("| capture | blocks in mask | adjacent | on the edge | recall near (on) | false flags | detector CPU s "
+          "| preprocessing CPU s |")
     print("|---|---|---|---|---|---|---|---|")
     for path in args.plain:
         seen, seconds = _detect(Path(path))
