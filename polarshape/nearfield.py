@@ -98,7 +98,7 @@ _SCAN_POINTS = 240
 #: Local minima of the scan refined by Brent's method (the lowest first).
 _REFINED_MINIMA = 3
 
-#: A textured object's bright cells: mask pixels whose albedo is above this share of the 90th percentile.
+#: The textured detector's bright cells: mask pixels whose albedo is above this share of the 90th percentile.
 _BRIGHT_SHARE = 0.5
 
 #: Least share of the mask the bright cells must cover, and least share the dark ones must, for a capture with
@@ -671,15 +671,18 @@ def _fit_model(inputs: RecoveryInputs, albedo: Tensor,
     :data:`_MIN_EDGE_FRACTION` of the mask, and the current ``albedo`` (H, W) above :data:`_BRIGHT_SHARE` of its
     90th percentile on at least :data:`_MIN_BRIGHT_FRACTION` of the mask, below it on at least
     :data:`_MIN_DARK_FRACTION`) under few lights: the fit of one material over every pixel settles in a wrong
-    minimum (the checker-textured sphere of ``configs/scenes/textured.yaml`` under its 4 point lights, given the
-    true per-pixel L and E: α 0.147, β 1.19 for the true 0.2, 2.0; 1.99° mean, against 1.39° with the true
-    material held). Its dark cells' shading is mostly the untextured surface reflection, and at the rim and the
-    terminators a pixel seen by one or two lights lets its normal and albedo absorb a wrong material. The
-    material (μ, α, β, κ) is fitted on the pixels with the most usable observations (:func:`_fully_observed`:
-    there, every light's; dark cells included — on the bright cells alone the fit lands elsewhere again: α 0.24,
-    β 3.0, 1.66° held) and held (``material_use: fixed``) in the fit of every pixel's normal and albedos
-    (α 0.200, β 2.02: 1.40° held). ``recover(inputs)`` fits the model; ``recover(inputs, material)`` with a
-    :class:`~polarshape.recover.coarse_to_fine.KnownMaterial` held. A note is added to ``skipped``.
+    minimum. Measured on the checker-textured sphere of ``configs/scenes/textured.yaml`` (4 point lights,
+    128²), given the true per-pixel L and E: over every pixel α 0.147, β 1.19 for the true 0.2, 2.0 (1.99° mean;
+    the true material held: 1.39°); on the bright cells alone α 0.24, β 3.0 (1.66° held). Its dark cells'
+    shading is mostly the untextured surface reflection, and at the rim and the terminators a pixel seen by one
+    or two lights lets its normal and albedo absorb a wrong material. So the material (μ, α, β, κ) is fitted on
+    the pixels with the most usable observations (:func:`_fully_observed`: there, all 4 lights'; dark cells
+    included) — true L and E: α 0.200, β 2.02, 1.40° held — by the joint solve (``recovery.solver: joint``):
+    the alternating one lands at α 0.09 on the same pixels at the first model round's lights (1.3 % near), the
+    joint one at α 0.19. It is then held (``material_use: fixed``) in the run's own fit of every pixel's normal
+    and albedos. ``recover(inputs)`` fits the model; ``recover(inputs, material)`` with a
+    :class:`~polarshape.recover.coarse_to_fine.KnownMaterial` held; ``recover(inputs, solver="joint")`` with
+    that recovery option changed. A note is added to ``skipped``.
     """
     mask = inputs.mask
     edges = inputs.albedo_edges
@@ -700,7 +703,7 @@ def _fit_model(inputs: RecoveryInputs, albedo: Tensor,
         return recover(inputs)
     material = FMBRDFParams(**{k: float(on_seen.params[k]) for k in FMBRDF_PARAM_NAMES})
     note = (f"nearfield: textured object (albedo steps): the material fitted on the {n_seen} pixels of {n_mask} "
-            f"with >= {least} of {inputs.valid.shape[0]} usable observations, held for every pixel")
+            f"with >= {least} of {inputs.valid.shape[0]} usable observations (joint solve), held for every pixel")
     if not any(item.startswith("nearfield: textured object") for item in skipped):
         skipped.append(note)
     logger.info("%s: ior %.3g, alpha %.3g, beta %.3g, kappa %.3g", note, material.ior, material.alpha, material.beta,
@@ -732,7 +735,8 @@ def refine_near_field(
         lights: the capture's lights (point lights; directional ones are left as they are).
         recover: fits the run's model to inputs (the pipeline's ``recover_normals`` with its options);
             ``recover(inputs, material)`` with a :class:`~polarshape.recover.coarse_to_fine.KnownMaterial` holds
-            that material (a textured object's, fitted on its fully observed pixels: :func:`_fit_model`).
+            that material, ``recover(inputs, solver=...)`` changes that recovery option (a textured object's
+            material, fitted on its fully observed pixels by the joint solve: :func:`_fit_model`).
         integrate: (normals (H, W, 3), mask (H, W), depth_init or None) → depth (H, W), the run's
             integration (its gauge: median depth ``reference_depth`` without ``depth_init``).
         reference_depth: the starting guess of the median depth, metres.

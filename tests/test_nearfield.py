@@ -262,10 +262,11 @@ def test_model_rounds_settle_instead_of_swinging_on_a_glossy_sphere(tmp_path: Pa
 
 def test_textured_object_material_is_fitted_on_its_fully_observed_pixels(tmp_path: Path) -> None:
     """A checker-textured sphere (albedo steps found in preprocessing): each model round fits the material on
-    the pixels with the most usable observations — dark cells included, the rim and terminators (seen by
-    fewer lights) left out: over every pixel the fit of configs/scenes/textured.yaml settled at α 0.15 for
-    0.2, on its bright cells alone at 0.24, on its fully observed pixels at 0.200 (true L and E) — then holds
-    it (``material_use: fixed``) for every pixel; an untextured capture keeps one plain fit per round."""
+    the pixels with the most usable observations by the joint solve — dark cells included, the rim and
+    terminators (seen by fewer lights) left out: over every pixel the fit of configs/scenes/textured.yaml
+    settled at α 0.15 for 0.2, on its bright cells alone at 0.24, on its fully observed pixels at 0.200 (true
+    L and E) — then holds it (``material_use: fixed``) for every pixel; an untextured capture keeps one plain
+    fit per round."""
     from polarshape.normals import NormalsResult
     from polarshape.recover.coarse_to_fine import KnownMaterial
 
