@@ -98,13 +98,17 @@ _SCAN_POINTS = 240
 #: Local minima of the scan refined by Brent's method (the lowest first).
 _REFINED_MINIMA = 3
 
-#: A textured object's bright cells: mask pixels whose albedo is above this share of the 90th percentile.
+#: The textured detector's bright cells: mask pixels whose albedo is above this share of the 90th percentile.
 _BRIGHT_SHARE = 0.5
 
-#: Least share of the mask the bright cells must cover for the material to be fitted on them alone, and least
-#: share the dark ones must (fewer: an untextured object's shading errors, not a texture).
+#: Least share of the mask the bright cells must cover, and least share the dark ones must, for a capture with
+#: albedo steps to count as textured (fewer dark pixels: an untextured object's shading errors, not a texture).
 _MIN_BRIGHT_FRACTION = 0.2
 _MIN_DARK_FRACTION = 0.1
+
+#: Least share of the mask a textured object's material is fitted on (:func:`_fit_model`: the pixels with the
+#: most usable observations, widened one observation at a time until they cover this share).
+_MIN_FIT_FRACTION = 0.2
 
 #: Least share of the mask on albedo steps for a capture to count as textured (the untextured bumpy blob at 64²
 #: has 1 of 2314 pixels flagged; the checker-textured sphere 5.5 % at 128²).
@@ -647,20 +651,38 @@ def _model_rounds(
     return inputs, normals, depth, depth_m, it
 
 
+def _fully_observed(inputs: RecoveryInputs) -> tuple[Tensor, int]:
+    """The mask pixels with the most usable observations: ((H, W) bool, the least count they have) — every
+    light's where at least :data:`_MIN_FIT_FRACTION` of the mask has them all, else one fewer, and so on until
+    they cover that share."""
+    mask = inputs.mask
+    count = (inputs.valid & mask).sum(0)  # (H, W)
+    least = int(count[mask].max()) if bool(mask.any()) else 0
+    while least > 1 and int((count >= least).sum()) < _MIN_FIT_FRACTION * int(mask.sum()):
+        least -= 1
+    return mask & (count >= least), least
+
+
 def _fit_model(inputs: RecoveryInputs, albedo: Tensor,
                recover: Callable[..., NormalsResult], skipped: list[str]) -> NormalsResult:
-    """The run's model fitted to ``inputs``; on a textured object, its material on the bright cells only.
+    """The run's model fitted to ``inputs``; on a textured object, its material on the fully observed pixels.
 
-    A texture (albedo steps found in preprocessing: ``inputs.albedo_edges``) leaves dark cells whose shading
-    is mostly the untextured surface reflection, and the fit of one material over every pixel can settle in a
-    wrong minimum there (the checker-textured sphere under 4 point lights: α 0.12, β 0.93 for the true 0.2,
-    2.0, at a loss 40 % above the true material's; started from α 0.2 it returns there). With albedo steps on
-    at least :data:`_MIN_EDGE_FRACTION` of the mask, the material (μ, α, β, κ) is fitted on the pixels whose
-    current ``albedo`` (H, W) is above :data:`_BRIGHT_SHARE` of its 90th percentile (when they cover at least
-    :data:`_MIN_BRIGHT_FRACTION` of the mask and leave at least :data:`_MIN_DARK_FRACTION` dark), and held
-    (``material_use: fixed``) in the fit of every pixel's normal and albedos. ``recover(inputs)`` fits the
-    model; ``recover(inputs, material)`` with a :class:`~polarshape.recover.coarse_to_fine.KnownMaterial` held.
-    A note is added to ``skipped``.
+    A textured object (albedo steps found in preprocessing: ``inputs.albedo_edges`` on at least
+    :data:`_MIN_EDGE_FRACTION` of the mask, and the current ``albedo`` (H, W) above :data:`_BRIGHT_SHARE` of its
+    90th percentile on at least :data:`_MIN_BRIGHT_FRACTION` of the mask, below it on at least
+    :data:`_MIN_DARK_FRACTION`) under few lights: the fit of one material over every pixel settles in a wrong
+    minimum. Measured on the checker-textured sphere of ``configs/scenes/textured.yaml`` (4 point lights,
+    128²), given the true per-pixel L and E: over every pixel α 0.147, β 1.19 for the true 0.2, 2.0 (1.99° mean;
+    the true material held: 1.39°); on the bright cells alone α 0.24, β 3.0 (1.66° held). Its dark cells'
+    shading is mostly the untextured surface reflection, and at the rim and the terminators a pixel seen by one
+    or two lights lets its normal and albedo absorb a wrong material. So the material (μ, α, β, κ) is fitted on
+    the pixels with the most usable observations (:func:`_fully_observed`: there, all 4 lights'; dark cells
+    included) — true L and E: α 0.200, β 2.02, 1.40° held — by the joint solve (``recovery.solver: joint``):
+    the alternating one lands at α 0.09 on the same pixels at the first model round's lights (1.3 % near), the
+    joint one at α 0.19. It is then held (``material_use: fixed``) in the run's own fit of every pixel's normal
+    and albedos. ``recover(inputs)`` fits the model; ``recover(inputs, material)`` with a
+    :class:`~polarshape.recover.coarse_to_fine.KnownMaterial` held; ``recover(inputs, solver="joint")`` with
+    that recovery option changed. A note is added to ``skipped``.
     """
     mask = inputs.mask
     edges = inputs.albedo_edges
@@ -669,16 +691,19 @@ def _fit_model(inputs: RecoveryInputs, albedo: Tensor,
     if edges is None or int((edges & mask).sum()) < _MIN_EDGE_FRACTION * n_mask or not bool(known.any()):
         return recover(inputs)
     level = _BRIGHT_SHARE * torch.quantile(albedo[known].to(torch.float64), 0.9)
-    bright = known & (albedo > level)
-    n_bright = int(bright.sum())
+    n_bright = int((known & (albedo > level)).sum())
     if n_bright < _MIN_BRIGHT_FRACTION * n_mask or n_bright > (1 - _MIN_DARK_FRACTION) * n_mask:
         return recover(inputs)
-    on_bright = recover(dataclasses.replace(inputs, mask=bright))
-    if on_bright.model != "fmbrdf":
+    seen, least = _fully_observed(inputs)
+    n_seen = int(seen.sum())
+    if n_seen == n_mask or least < 3:
         return recover(inputs)
-    material = FMBRDFParams(**{k: float(on_bright.params[k]) for k in FMBRDF_PARAM_NAMES})
-    note = (f"nearfield: textured object (albedo steps): the material fitted on the {n_bright} bright pixels of "
-            f"{n_mask} (albedo above {_BRIGHT_SHARE:g} × its 90th percentile), held for every pixel")
+    on_seen = recover(dataclasses.replace(inputs, mask=seen), solver="joint")
+    if on_seen.model != "fmbrdf":
+        return recover(inputs)
+    material = FMBRDFParams(**{k: float(on_seen.params[k]) for k in FMBRDF_PARAM_NAMES})
+    note = (f"nearfield: textured object (albedo steps): the material fitted on the {n_seen} pixels of {n_mask} "
+            f"with >= {least} of {inputs.valid.shape[0]} usable observations (joint solve), held for every pixel")
     if not any(item.startswith("nearfield: textured object") for item in skipped):
         skipped.append(note)
     logger.info("%s: ior %.3g, alpha %.3g, beta %.3g, kappa %.3g", note, material.ior, material.alpha, material.beta,
@@ -710,7 +735,8 @@ def refine_near_field(
         lights: the capture's lights (point lights; directional ones are left as they are).
         recover: fits the run's model to inputs (the pipeline's ``recover_normals`` with its options);
             ``recover(inputs, material)`` with a :class:`~polarshape.recover.coarse_to_fine.KnownMaterial` holds
-            that material (a textured object's, fitted on its bright cells: :func:`_fit_model`).
+            that material, ``recover(inputs, solver=...)`` changes that recovery option (a textured object's
+            material, fitted on its fully observed pixels by the joint solve: :func:`_fit_model`).
         integrate: (normals (H, W, 3), mask (H, W), depth_init or None) → depth (H, W), the run's
             integration (its gauge: median depth ``reference_depth`` without ``depth_init``).
         reference_depth: the starting guess of the median depth, metres.

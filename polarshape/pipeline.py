@@ -355,8 +355,9 @@ def near_field(capture: Capture, inputs: RecoveryInputs, result: NormalsResult, 
         log.skip("nearfield", "orthographic camera without integration.pixel_size_m")
         return inputs, result, None
 
-    def recover(new_inputs: RecoveryInputs, material: KnownMaterial | None = None) -> NormalsResult:
-        return recover_normals(new_inputs, config.recovery, config.initial_normals, seed=config.seed, progress=False,
+    def recover(new_inputs: RecoveryInputs, material: KnownMaterial | None = None, **changes: Any) -> NormalsResult:
+        options = config.recovery.model_copy(update=changes) if changes else config.recovery
+        return recover_normals(new_inputs, options, config.initial_normals, seed=config.seed, progress=False,
                                material=material)
 
     found = refine_near_field(

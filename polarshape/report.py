@@ -1052,19 +1052,30 @@ def _timing_table(params: dict[str, Any]) -> str:
     return _table("Timings (s)", rows)
 
 
+#: The near-field rounds' columns (params.json ``nearfield.iterations`` keys: header), in order; keys a round has
+#: beyond these follow under their own names.
+_NEARFIELD_COLUMNS: tuple[tuple[str, str], ...] = (
+    ("iteration", "round"), ("normals", "normals"), ("median_depth_m", "median depth, m"), ("placement", "placement"),
+    ("normal_change_deg", "normal change, deg"), ("depth_change", "depth change"), ("residual", "residual"),
+    ("relaxation", "relaxation (share of the searched move taken)"), ("seconds", "seconds"),
+)
+
+
 def _nearfield_table(params: dict[str, Any]) -> str:
     """The near-field rounds (params.json ``nearfield``): depth placement and changes per round."""
     record = params.get("nearfield") or {}
     if not record.get("enabled"):
         return ""
-    header = ["round", "normals", "median depth, m", "placement", "normal change, deg", "depth change", "residual",
-              "seconds"]
-    keys = ["iteration", "normals", "median_depth_m", "placement", "normal_change_deg", "depth_change", "residual",
-            "seconds"]
-    rows = [tuple(_fmt(it.get(k)) for k in keys) for it in record.get("iterations") or []]
+    rounds = [it for it in record.get("iterations") or [] if isinstance(it, dict)]
+    known = dict(_NEARFIELD_COLUMNS)
+    extra = list(dict.fromkeys(k for it in rounds for k in it if k not in known))
+    keys = [k for k, _ in _NEARFIELD_COLUMNS] + extra
+    header = [known.get(k, k) for k in keys]
+    rows = [tuple(_fmt(it.get(k)) for k in keys) for it in rounds]
     how = "estimated from the shading" if record.get("depth_estimated") else "integration.reference_depth_m"
     note = (f"object at {_fmt(record.get('median_depth_m'))} m ({how}; first guess {_fmt(record.get('reference_depth_m'))} "
-            f"m); placement: {(record.get('placement') or {}).get('kind')}; converged: {record.get('converged')}")
+            f"m); placement: {(record.get('placement') or {}).get('kind')}; converged: {record.get('converged')}; "
+            "relaxation: n/a outside the model rounds")
     return _table("Near-field lights: normals, depth and per-pixel lights", rows, header, note)
 
 

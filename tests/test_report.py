@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -244,6 +245,30 @@ def test_rewrite_report_page_shows_the_final_timings(tmp_path: Path) -> None:
     assert "<td>total</td><td>9.250</td>" in page and "not known yet" not in page
     assert "SuspiciousInputWarning" in page and "the frames look shuffled" in page
     assert {f: f.stat().st_mtime_ns for f in files[1:]} == plots  # plots not redrawn
+
+
+def test_html_report_shows_the_near_field_rounds_with_their_relaxation(tmp_path: Path) -> None:
+    """The near-field rounds of params.json (as a run writes them) in the report: the model rounds' relaxation
+    has its column (n/a in the other rounds), and a key the table does not know yet still shows."""
+    import json
+
+    from polarshape.nearfield import NearFieldIteration, NearFieldResult
+
+    rounds = [NearFieldIteration(0, "plane", 1.0, 1.0, math.nan, math.nan, 0.2, 0.25),
+              NearFieldIteration(1, "ps", 0.36, 0.36, 3.5, 0.05, 0.04, 0.75),
+              NearFieldIteration(2, "model-ps", 0.35, 0.35, 1.5, 0.01, 0.03, 1.25, relaxation=0.5)]
+    run = NearFieldResult(inputs=None, result=None, depth=np.full((2, 2), 0.35),  # type: ignore[arg-type]
+                          iterations=rounds, converged=False, estimated=True, projection="perspective",
+                          reference_depth_m=1.0)
+    record = run.as_dict()
+    record = json.loads(json.dumps(record))  # as read back from params.json (NaN → null)
+    record["iterations"][2]["a_later_key"] = 7
+    data = _sphere_data(rendered=False, error=False)
+    data.params["nearfield"] = record
+    page = write_report(tmp_path, data, fmt="html")[0].read_text()
+    assert "<th>relaxation (share of the searched move taken)</th><th>seconds</th><th>a_later_key</th>" in page
+    assert "<td>2</td><td>model-ps</td>" in page and "<td>0.5</td><td>1.25</td><td>7</td></tr>" in page
+    assert "<td>1</td><td>ps</td>" in page and "<td>n/a</td><td>0.75</td><td>n/a</td></tr>" in page
 
 
 def test_material_truth_of_a_simulated_scene() -> None:

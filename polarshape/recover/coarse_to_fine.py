@@ -436,8 +436,9 @@ def _joint_record(fit: JointResult, level: int, stage: str, log: SolveLog) -> No
     for h in fit.history:
         log.history.append({"stage": f"level{level}", "solver": stage, "iteration": h["iteration"], "loss": h["loss"],
                             "rel_change": h["rel_change"], "seconds": time.perf_counter() - log.t_start,
-                            **fit.params.as_dict(), **{k: v for k, v in h.items() if k in ("ior", "alpha", "beta",
-                                                                                             "kappa", "k_s")}})
+                            **fit.params.as_dict(), **{k: v for k, v in h.items() if k in (
+                                "ior", "alpha", "beta", "kappa", "k_s", "lambda", "accepted", "moved", "attempts",
+                                "pinned", "step", "rho", "jumped")}})
 
 
 def _joint_level(lv: _Level, inputs: RecoveryInputs, sub_idx: Tensor, options: RecoveryOptions, *,

@@ -92,7 +92,11 @@ class JointResult:
         iterations: LM iterations taken. rel_change: relative loss change of the last iteration
             (0 when no damping found a descent). converged: ``rel_change < tol``.
         history: per iteration: loss, relative change, λ of the globals, whether a step was taken, the
-            share of pixels whose normal step was kept (``moved``), seconds, parameters.
+            share of pixels whose normal step was kept (``moved``), seconds, parameters; and what the LM
+            did: ``attempts`` (damping tries), ``rho`` (each try's gain ratio, actual over the
+            Gauss–Newton model's predicted loss decrease; None where it predicted none), ``step`` (the
+            accepted step of the globals in the search coordinate: log α, log β), ``pinned`` (globals
+            held at a bound), ``jumped`` (pixels that took their highlight candidate).
         seconds: wall time.
         start_normals, start_params: where the solve started ((P, 3) and the material), for a restart.
         pixel_loss: (P,) each pixel's final Huber loss (unnormalised: ``loss`` is their sum over the
@@ -267,10 +271,23 @@ def _try_highlights(model: _Model, st: _State, cand: Tensor) -> tuple[_State, Te
     (P,) bool of the pixels that moved."""
     trial = _state(model, st.vals, cand.to(st.n.dtype), st.problem)
     take = ((trial.n * model.obs.view).sum(-1) > 0) & torch.isfinite(trial.loss_pp) & (trial.loss_pp < st.loss_pp)
+    return _where(take, trial, st), take
+
+
+def _where(take: Tensor, a: _State, b: _State) -> _State:
+    """Per pixel ``a`` where ``take`` (P,) else ``b`` (same globals and tables)."""
     t1, t3 = take[:, None], take[:, None, None]
-    return _State(st.vals, st.problem, torch.where(t1, trial.n, st.n), torch.where(t3, trial.surf, st.surf),
-                  torch.where(t3, trial.body, st.body), torch.where(t3, trial.r, st.r),
-                  torch.where(take, trial.k_b, st.k_b), torch.where(take, trial.loss_pp, st.loss_pp)), take
+    return _State(a.vals, a.problem, torch.where(t1, a.n, b.n), torch.where(t3, a.surf, b.surf),
+                  torch.where(t3, a.body, b.body), torch.where(t3, a.r, b.r), torch.where(take, a.k_b, b.k_b),
+                  torch.where(take, a.loss_pp, b.loss_pp))
+
+
+def _start(model: _Model, vals: dict[str, float], n: Tensor) -> _State:
+    """The point (``vals``, ``n``) with the linear globals (k_s; a global k_b) at their closed-form optimum."""
+    st = _state(model, vals, n)
+    k_s, k_b = solve_albedos(st.surf, st.body, model.obs, per_pixel=model.per_pixel, polarised=model.polarised)
+    vals = {**vals, "k_s": float(k_s), "k_b": vals["k_b"] if model.per_pixel else float(k_b[0])}
+    return _state(model, vals, n, model.problem(st.problem.tables, vals))  # the albedos need no new tables
 
 
 def _jacobians(model: _Model, st: _State, step_h: float) -> tuple[Tensor, Tensor, Tensor, Tensor]:
@@ -343,11 +360,7 @@ def joint_solve(normals: Tensor, obs: Observations, params: FMBRDFParams, *, nam
     history: list[dict] = []
     with torch.no_grad():
         vals0 = {k: float(getattr(params, k)) for k in (*TABLE_PARAMS, "k_s", "k_b")}
-        st = _state(model, vals0, unit(normals))
-        # the linear globals start at their closed-form optimum for the start normals and material
-        k_s, k_b = solve_albedos(st.surf, st.body, obs, per_pixel=per_pixel_albedo, polarised=polarised)
-        vals0.update(k_s=float(k_s), k_b=vals0["k_b"] if per_pixel_albedo else float(k_b[0]))
-        st = _state(model, vals0, st.n, model.problem(st.problem.tables, vals0))  # the albedos need no new tables
+        st = _start(model, vals0, unit(normals))
         initial, initial_pp = float(_mean(st.loss_pp, obs)), st.loss_pp
         cand = _highlight_normals(obs)
         st, _ = _try_highlights(model, st, cand)
@@ -361,13 +374,14 @@ def joint_solve(normals: Tensor, obs: Observations, params: FMBRDFParams, *, nam
             r0 = st.r.reshape(p, -1).double()
             w = irls_weights(st.problem, r0)  # (P, M)
             jn, jg = jn.double(), jg.double()
-            jnw = jn * w.unsqueeze(-1)
+            jnw, jgw = jn * w.unsqueeze(-1), jg * w.unsqueeze(-1)
             h_nn, h_ng = jnw.transpose(1, 2) @ jn, jnw.transpose(1, 2) @ jg  # (P, 2, 2), (P, 2, G)
-            jgw = jg * w.unsqueeze(-1)
             h_gg = torch.einsum("pmi,pmj->ij", jgw, jg)
             b_n, b_g = (jnw * r0.unsqueeze(-1)).sum(1), (jgw * r0.unsqueeze(-1)).sum((0, 1))
             rel, accepted, moved = 0.0, False, 0.0
+            attempts, pinned_names, rhos, n_jumped = 0, [], [], 0.0
             for _attempt in range(6):
+                attempts += 1
                 dn, dg = schur_step(h_nn, h_ng, h_gg, b_n, b_g, lam_n, lam_g)
                 dg_host = dg.tolist()  # the tables are built from the globals: G numbers to the host
                 pinned = _pinned(fitted, st.vals, dg_host)
@@ -380,6 +394,12 @@ def joint_solve(normals: Tensor, obs: Observations, params: FMBRDFParams, *, nam
                 for name, d in zip(fitted, dg_host):
                     lim = _max_step(name, st.vals[name])
                     vals[name] = _from_u(name, _to_u(name, st.vals[name]) + max(min(d, lim), -lim))
+                # the Gauss–Newton model's predicted loss decrease of the step as taken (clipped, bounded)
+                dg_taken = [_to_u(k, vals[k]) - _to_u(k, st.vals[k]) for k in fitted]
+                dgt = torch.tensor(dg_taken, dtype=h_gg.dtype, device=dev)
+                pred = -((b_n * dn).sum() + b_g @ dgt + 0.5 * (
+                    (dn.unsqueeze(1) @ h_nn @ dn.unsqueeze(-1)).sum() + 2 * (dn.unsqueeze(1) @ h_ng @ dgt).sum()
+                    + dgt @ h_gg @ dgt))
                 dn = dn.to(st.n.dtype)
                 n_new = unit(st.n + dn[:, :1] * t1 + dn[:, 1:] * t2)
                 trial_new = _state(model, vals, n_new)
@@ -388,30 +408,32 @@ def joint_solve(normals: Tensor, obs: Observations, params: FMBRDFParams, *, nam
                     trial_new.loss_pp < trial_old.loss_pp)
                 loss_pp = torch.where(keep_new, trial_new.loss_pp, trial_old.loss_pp)
                 # the one convergence / acceptance check (with the share of pixels that took their step)
-                total_t, moved_t = torch.stack([_mean(loss_pp, obs).double(), keep_new.double().mean()]).tolist()
+                total_t, moved_t, pred_mean = torch.stack([_mean(loss_pp, obs).double(), keep_new.double().mean(),
+                                                           _mean(pred, obs).double()]).tolist()
                 better = keep_new | (trial_new.loss_pp < st.loss_pp)
+                # the gain ratio ρ: actual / predicted decrease (None where the model predicted none)
+                ok = pred_mean > 0 and math.isfinite(total_t)
+                rhos.append(round((total - total_t) / pred_mean, 3) if ok else None)
                 if math.isfinite(total_t) and total_t < total:
                     rel = (total - total_t) / max(total, floor)
-                    kn, kn3 = keep_new[:, None], keep_new[:, None, None]
-                    st = _State(vals, trial_new.problem, torch.where(kn, n_new, st.n),
-                                torch.where(kn3, trial_new.surf, trial_old.surf),
-                                torch.where(kn3, trial_new.body, trial_old.body),
-                                torch.where(kn3, trial_new.r, trial_old.r),
-                                torch.where(keep_new, trial_new.k_b, trial_old.k_b), loss_pp)
+                    st = _where(keep_new, trial_new, trial_old)
                     total, accepted = total_t, True
                     moved = moved_t
+                    pinned_names = [fitted[i] for i in pinned]
                     lam_g = max(lam_g / 3, 1e-7)
                     lam_n = torch.where(keep_new, (lam_n / 3).clamp_min(1e-7), (lam_n * 4).clamp_max(1e7))
                     st, jumped = _try_highlights(model, st, cand)
                     lam_n = torch.where(jumped, torch.full_like(lam_n, 1e-3), lam_n)
-                    total_j = float(_mean(st.loss_pp, obs))
+                    total_j, n_jumped = torch.stack([_mean(st.loss_pp, obs).double(), jumped.double().sum()]).tolist()
                     rel = (total - total_j) / max(total, floor) + rel
                     total = total_j
                     break
                 lam_g = min(lam_g * 10, 1e10)
                 lam_n = torch.where(better, lam_n, (lam_n * 4).clamp_max(1e7))
             history.append({"iteration": it, "loss": total, "rel_change": rel, "lambda": lam_g,
-                            "accepted": accepted, "moved": moved, "seconds": time.perf_counter() - t0,
+                            "accepted": accepted, "moved": moved, "attempts": attempts, "rho": rhos,
+                            "step": dg_taken if accepted else [], "pinned": pinned_names, "jumped": int(n_jumped),
+                            "seconds": time.perf_counter() - t0,
                             **{k: st.vals[k] for k in fitted}})
             logger.debug("joint %d: loss %.6g (rel %.2e) %s", it, total, rel, {k: st.vals[k] for k in fitted})
             if not accepted or rel < tol or (stop is not None and stop(initial, history)):

@@ -56,6 +56,29 @@ def test_shading_alone_is_no_edge() -> None:
     assert not edges.adjacent.any() and not edges.on_edge.any()
 
 
+def test_a_step_seen_by_dim_lights_alone_is_no_edge() -> None:
+    """Near two lights' terminator (a plain sphere's rim under 12 lights) their s0 is small and its log steep: with
+    noise, a ramp there reads as a step flat on both sides under those two lights, while the ten bright lights
+    see no change — an albedo step would scale them all."""
+    k = 12
+    s0 = _shading(k, H, W)  # ≈ 0.3: the bright lights
+    drop = torch.ones(W, dtype=torch.float64)
+    drop[W // 2:] = 0.7  # ×1.43 across one block boundary, flat on both sides
+    s0[:2] = 0.03 * drop  # the two lights near their terminator
+    edges = find_albedo_edges(s0, torch.ones_like(s0, dtype=torch.bool))
+    assert not edges.adjacent.any() and not edges.on_edge.any()
+
+
+def test_a_step_dimmed_by_a_highlight_under_one_light_is_still_an_edge() -> None:
+    """A strong surface reflection under one light (unchanged by the albedo) shrinks the step it sees."""
+    albedo = torch.ones(H, W, dtype=torch.float64)
+    albedo[:, W // 2:] = 3.0
+    s0 = _shading(K, H, W) * albedo
+    s0[0] += 1.0  # under light 0 the step is ×1.4 instead of ×3, and that light carries most of the radiance
+    edges = find_albedo_edges(s0, torch.ones_like(s0, dtype=torch.bool))
+    assert edges.adjacent.all(0).nonzero().flatten().tolist() == [W // 2 - 1, W // 2]
+
+
 def test_a_step_seen_under_one_light_only_is_no_edge() -> None:
     albedo = torch.ones(H, W, dtype=torch.float64)
     albedo[:, W // 2:] = 3.0
@@ -75,6 +98,8 @@ def test_bad_arguments() -> None:
         find_albedo_edges(s0, usable, min_lights=1)
     with pytest.raises(ValueError, match="usable"):
         find_albedo_edges(s0, usable[:, 1:])
+    with pytest.raises(ValueError, match="min_weight"):
+        find_albedo_edges(s0, usable, min_weight=0.0)
 
 
 def _textured_capture() -> tuple[Capture, int]:

@@ -3,6 +3,7 @@ sphere against the alternation, and κ as a nested fit."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 
 import pytest
@@ -67,6 +68,13 @@ def test_joint_solve_recovers_material_and_normals_and_converges() -> None:
     assert all(b["loss"] <= a["loss"] for a, b in zip(fit.history, fit.history[1:]))  # never rises
     assert abs(fit.params.alpha - 0.3) < 0.01 and abs(fit.params.ior - 1.5) < 0.02, fit.params
     assert float(angular_error_deg(fit.normals, truth[m]).mean()) < 0.5
+    # every iteration says what the LM did (damping tries, the gain ratio ρ of each try, the globals' step)
+    for h in fit.history:
+        assert h["attempts"] >= 1 and len(h["rho"]) == h["attempts"], h
+        if h["accepted"]:
+            assert len(h["step"]) == 4 and all(math.isfinite(d) for d in h["step"]), h  # μ, log α, log β, k_s
+    # on this well-posed case the first step's quadratic model predicts its gain (0 < ρ; ρ ≈ 1 when exact)
+    assert 0.2 < fit.history[0]["rho"][-1] < 3.0, fit.history[0]
 
 
 @pytest.mark.slow
