@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from polarshape.brdf import build_tables
-from polarshape.brdf.body_fast import BodyTable, body_stokes_fast, build_body_table
+from polarshape.brdf.body_fast import BodyTable, body_stokes_fast, build_body_table, clear_facet_cache
 from polarshape.brdf.distribution import d_normalisation
 
 
@@ -89,3 +89,30 @@ def test_a_pixel_with_view_along_the_normal_leaves_the_others_unchanged(kappa: f
     mixed = body_stokes_fast(tables.body, n2, torch.cat([l, l[:1]]), v2, k_b=1.0)
     torch.testing.assert_close(mixed[:-1], plain, rtol=1e-15, atol=0.0)
     assert bool(torch.isfinite(mixed).all())
+
+
+@pytest.mark.parametrize("kappa", [0.0, 20.0])
+def test_cached_facet_side_gives_the_table_built_afresh(kappa: float) -> None:
+    """Builds on one frozen layout share their facet side (a fit's finite differences): every table then
+    equals the one built with an empty cache — a changed μ is a new side, a changed α, β or κ is not."""
+    layout = (0.25, 2.0, kappa)
+    variants = [dict(ior=1.5, alpha=0.25, beta=2.0, kappa=kappa), dict(ior=1.5, alpha=0.2503, beta=2.0, kappa=kappa),
+                dict(ior=1.5, alpha=0.25, beta=2.004, kappa=kappa * 1.01), dict(ior=1.52, alpha=0.25, beta=2.0, kappa=kappa)]
+    clear_facet_cache()
+    shared = [build_tables(**v, layout=layout, n_grid=17).body.values for v in variants]
+    for v, values in zip(variants, shared):
+        clear_facet_cache()
+        fresh = build_tables(**v, layout=layout, n_grid=17).body.values
+        assert torch.equal(values, fresh), v
+    assert not torch.equal(shared[0], shared[3])  # μ moved the table: the cache did not hand back μ 1.5's side
+    assert clear_facet_cache() >= 1
+
+
+def test_python_floats_lay_the_table_out_at_their_own_value() -> None:
+    """A table built from Python floats equals one laid out explicitly at those floats (no float32 rounding of
+    the parameters on the way in), so that a fit's base point and its finite differences share one layout."""
+    tables = build_tables(ior=1.5, alpha=0.0303, beta=1.7, kappa=0.0, n_grid=17)
+    assert float(tables.alpha) == 0.0303 and float(tables.beta) == 1.7
+    clear_facet_cache()
+    laid_out = build_tables(ior=1.5, alpha=0.0303, beta=1.7, kappa=0.0, n_grid=17, layout=(0.0303, 1.7, 0.0))
+    assert torch.equal(tables.body.values, laid_out.body.values)
