@@ -26,10 +26,15 @@ busy box). Then the median total and max/median (the issue: no case slower than 
 Usage:
     python benchmarks/material_grid.py [--alphas 0.03 0.1 0.3 0.8] [--kappas 0 50]
         [--cameras orthographic perspective] [--size 256] [--lights 13] [--solver alternating|joint]
-        [--work DIR] [--json FILE] [--md FILE] [--reuse]
+        [--work DIR] [--tag NAME] [--json FILE] [--md FILE] [--reuse] [--compare TAG]
+
+    # before/after: each checkout's grid on the same captures, then both side by side
+    PYTHONPATH=<main> python benchmarks/material_grid.py --work DIR --tag main
+    PYTHONPATH=<branch> python benchmarks/material_grid.py --work DIR --tag branch --reuse --compare main
 
 Set OMP_NUM_THREADS (and say which); compare two checkouts with PYTHONPATH=<checkout> and the same
-``--work`` (the captures are shared; the results are kept per checkout with ``--tag``).
+``--work`` (the captures are shared; the results are kept per checkout with ``--tag``; ``--compare TAG``
+prints another tag's results beside these).
 """
 
 from __future__ import annotations
@@ -185,6 +190,35 @@ def table(names: list[str], results: list[dict]) -> list[str]:
     return lines
 
 
+def comparison(names: list[str], before: list[dict | None], after: list[dict], tags: tuple[str, str]) -> list[str]:
+    """Before/after side by side (``before``: another checkout's results of the same cases in ``--work``)."""
+    lines = [f"| α | κ | camera | total (s) {tags[0]} → {tags[1]} | CPU (s) | material | normals | outer it. | "
+             "α found | mean err (°) |", "|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|"]
+    pairs = []
+    for name, b, a in zip(names, before, after):
+        al, k, camera, _, _ = parse_case(name)
+        if b is None or "failed" in b or "failed" in a:
+            lines.append(f"| {al:g} | {k:g} | {camera} | not measured by both |" + " |" * 6)
+            continue
+        pairs.append((b, a))
+
+        def arrow(key: str, fmt: str) -> str:
+            return f"{format(b[key], fmt)} → {format(a[key], fmt)}"
+
+        lines.append(f"| {al:g} | {k:g} | {camera} | {arrow('total', '.1f')} | **{arrow('cpu_s', '.1f')}** | "
+                     f"{arrow('material', '.2f')} | {arrow('normals', '.2f')} | {arrow('outer', 'd')} | "
+                     f"{arrow('alpha', '.3g')} | {arrow('mean_err_deg', '.3f')} |")
+    if pairs:
+        lines.append("")
+        for key, label in (("total", "total"), ("cpu_s", "CPU")):
+            b, a = [r[key] for r, _ in pairs], [r[key] for _, r in pairs]
+            lines.append(f"{label}: median {statistics.median(b):.1f} → {statistics.median(a):.1f} s, max "
+                         f"{max(b):.1f} → {max(a):.1f} s, max/median {max(b) / statistics.median(b):.2f} → "
+                         f"{max(a) / statistics.median(a):.2f}; sum {sum(b):.1f} → {sum(a):.1f} s "
+                         f"(ratio {sum(a) / sum(b):.2f})")
+    return lines
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--alphas", nargs="*", type=float, default=list(ALPHAS))
@@ -200,6 +234,8 @@ def main() -> None:
     parser.add_argument("--reuse", action="store_true", help="keep results of cases already measured in --work")
     parser.add_argument("--json", type=Path, default=None, help="write every case's figures to this JSON file")
     parser.add_argument("--md", type=Path, default=None, help="also write the table to this Markdown file")
+    parser.add_argument("--compare", metavar="TAG", default=None,
+                        help="also print this tag's results of the same cases in --work beside these (before → after)")
     parser.add_argument("--case", help=argparse.SUPPRESS)  # one case in this process (what the grid runs)
     parser.add_argument("--case-json", type=Path, help=argparse.SUPPRESS)
     args = parser.parse_args()
@@ -223,6 +259,10 @@ def main() -> None:
             results.append(measure(args, work, name))
             print("\n".join(table([name], [results[-1]])[2:3]), flush=True)
         lines = [*head, *table(names, results)]
+        if args.compare:
+            before = [json.loads(f.read_text()) if (f := work / f"result_{args.compare}_{name}.json").exists()
+                      else None for name in names]
+            lines += ["", *comparison(names, before, results, (args.compare, args.tag))]
         print("\n".join(lines[len(head):]), flush=True)
         if args.json:
             args.json.write_text(json.dumps(dict(zip(names, results)), indent=1))

@@ -8,6 +8,10 @@ a. *global parameters* (μ, α, β, [κ]; k_s and per-pixel k_b in closed form) 
 b. *normals*: per-pixel Levenberg–Marquardt (:func:`polarshape.recover.normal_solver.refine_normals`),
    then neighbour propagation (:func:`polarshape.recover.normal_solver.propagate_normals`).
 
+From the third outer iteration on, when the material moved the same way in the last two (a crawl:
+shiny lobes, α against the normals under the highlight), the state is over-relaxed along its last
+change — material and normals 4× or 2× that change further — and kept only where that lowers the
+level's loss (:func:`_extrapolate`; the fixed point and the test below are unchanged).
 The alternation stops when the loss changed by ≤ 0.1 % over the last two outer iterations (a
 window, not one step) or after ``max_outer_iterations``. Finer levels start from the coarser normals
 upsampled bilinearly (:func:`upsample_normals`) and run step b only. With ``fit_kappa`` None, κ is
