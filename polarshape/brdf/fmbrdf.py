@@ -58,11 +58,8 @@ def check_param(name: str, value: Param) -> None:
 
 
 def _scalar(name: str, value: Param, device: torch.device) -> Tensor:
-    """0-dim float64 tensor on ``device`` (keeps autograd); table parameters must be one value.
-    A Python number is taken as float64 (not through torch's float32 default: the table is then
-    laid out at exactly the value a fit passes as ``layout``)."""
-    t = torch.as_tensor(value, device=device) if isinstance(value, Tensor) else \
-        torch.as_tensor(value, dtype=torch.float64, device=device)
+    """0-dim float64 tensor on ``device`` (keeps autograd); table parameters must be one value."""
+    t = torch.as_tensor(value, device=device)
     if t.numel() != 1:
         raise ValueError(
             f"the fast FMBRDF evaluator takes one value of {name!r} per call (one table per material); "

@@ -107,12 +107,3 @@ def test_cached_facet_side_gives_the_table_built_afresh(kappa: float) -> None:
     assert not torch.equal(shared[0], shared[3])  # μ moved the table: the cache did not hand back μ 1.5's side
     assert clear_facet_cache() >= 1
 
-
-def test_python_floats_lay_the_table_out_at_their_own_value() -> None:
-    """A table built from Python floats equals one laid out explicitly at those floats (no float32 rounding of
-    the parameters on the way in), so that a fit's base point and its finite differences share one layout."""
-    tables = build_tables(ior=1.5, alpha=0.0303, beta=1.7, kappa=0.0, n_grid=17)
-    assert float(tables.alpha) == 0.0303 and float(tables.beta) == 1.7
-    clear_facet_cache()
-    laid_out = build_tables(ior=1.5, alpha=0.0303, beta=1.7, kappa=0.0, n_grid=17, layout=(0.0303, 1.7, 0.0))
-    assert torch.equal(tables.body.values, laid_out.body.values)
