@@ -88,6 +88,11 @@ def render(work: Path, width: int, height: int, lights: int, device: str) -> Pat
     if (capture / "capture.yaml").exists():
         return capture
     scene = full_frame_scene(2 * width, 2 * height, lights, work / f"scene_{case_name(width, height, lights)}.yaml")
+    return simulate(scene, capture, device)
+
+
+def simulate(scene: Path, capture: Path, device: str) -> Path:
+    """``polarshape simulate`` of a scene file into ``capture`` (in a subprocess)."""
     t0 = time.perf_counter()
     subprocess.run([sys.executable, "-m", "polarshape.cli", "simulate", str(scene), "--out", str(capture),
                     "--overwrite", "--quiet", "--device", "cuda" if device == "cuda" else "cpu"], check=True, stdout=sys.stderr)
@@ -95,14 +100,17 @@ def render(work: Path, width: int, height: int, lights: int, device: str) -> Pat
     return capture
 
 
-def run_case(capture: Path, out: Path, device: str, model: str | None, max_outer: int | None) -> dict:
-    """``run_pipeline`` of one capture in this process: stage seconds, pixels, peak memory."""
+def run_case(capture: Path, out: Path, device: str, model: str | None, max_outer: int | None,
+             recovery_options: dict | None = None) -> dict:
+    """``run_pipeline`` of one capture in this process: stage seconds, pixels, peak memory
+    (``recovery_options``: more keys of the run's ``recovery`` section, e.g. ``solver``)."""
     import torch
 
     from polarshape.config import parse_run_config
     from polarshape.pipeline import run_pipeline
 
     recovery: dict = {} if model is None else {"model": model}
+    recovery.update(recovery_options or {})
     if max_outer is not None:
         recovery["max_outer_iterations"] = max_outer
     config = parse_run_config({

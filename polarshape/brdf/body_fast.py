@@ -32,6 +32,7 @@ plane of N and V where the exit transmission dominates (spec §5, §7).
 from __future__ import annotations
 
 import math
+from collections import OrderedDict
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -153,18 +154,21 @@ def n_fourier_modes(kappa: float, alpha: float, beta: float, *, log_tol: float =
 
 
 def _facet_modes(
-    sq: Tensor, cq: Tensor, bq: Tensor, tg: Tensor, phi: Tensor, wphi: Tensor, ior: Tensor, n_modes: int
+    sq: Tensor, cq: Tensor, tg: Tensor, phi: Tensor, wphi: Tensor, ior: Tensor, n_modes: int
 ) -> tuple[Tensor, Tensor]:
-    """The facet side of J for some rows of the θ grid: azimuthal Fourier modes of the exit (and,
-    with the same integrand, entry) weights, and the projected areas.
+    """The facet side of J for some rows of the θ grid, before the factor bq = θ weight × sin θ ×
+    D(θ) of each facet node (so that it depends on μ and the layout only, not on α, β, κ): azimuthal
+    Fourier modes of the exit (and, with the same integrand, entry) weights, and the arc sums of
+    the projected areas.
 
     Args:
-        sq, cq, bq: (Q,) sin θ, cos θ and θ weight × sin θ × D(θ) of the facet nodes.
+        sq, cq: (Q,) sin θ, cos θ of the facet nodes.
         tg: (g,) polar angles of ω (rows of the grid); phi, wphi: (g, Q, n) their arc rules.
         ior: μ. n_modes: M.
 
     Returns:
-        h_modes (3, M, g, Q) (intensity, s1 cosine modes; s2 sine modes; × bq), area (g,) = P(θ_g).
+        h_modes (3, M, g, Q) (intensity, s1 cosine modes; s2 sine modes), area_q (g, Q) with
+        P(θ_g) = Σ_Q area_q · bq.
     """
     sg, cg = torch.sin(tg)[:, None, None], torch.cos(tg)[:, None, None]
     n_x, n_y, n_z = sq[None, :, None] * torch.cos(phi), sq[None, :, None] * torch.sin(phi), cq[None, :, None]
@@ -173,13 +177,64 @@ def _facet_modes(
     # facet normal in the frame e'_x = (−cos θ_g, 0, sin θ_g), e'_y = (0, 1, 0) (projection of N)
     ax = -n_x * cg + n_z * sg
     r2 = (ax * ax + n_y * n_y).clamp_min(tiny(phi.dtype))
-    cos2, sin2 = (ax * ax - n_y * n_y) / r2, 2.0 * ax * n_y / r2
     base = wphi * cos_o  # arc weight × [n·ω]₊
+    area_q = base.sum(-1)  # (g, Q)
+    if n_modes == 1:
+        # κ = 0: only m = 0, the arc sums of intensity and s1 (the s2 sine mode is 0); the sums of
+        # ArcFourier's separable case without its (3, g, Q, n) stack
+        even = torch.stack([(base * fr.t_plus).sum(-1), (base * (-fr.t_minus) * ((ax * ax - n_y * n_y) / r2)).sum(-1)])
+        return torch.cat([even.unsqueeze(1), torch.zeros_like(even[:1]).unsqueeze(1)]), area_q
+    cos2, sin2 = (ax * ax - n_y * n_y) / r2, 2.0 * ax * n_y / r2
     h = torch.stack([base * fr.t_plus, base * (-fr.t_minus) * cos2, base * (-fr.t_minus) * sin2])  # (3,g,Q,n)
-    area = (base.sum(-1) * bq).sum(-1)  # (g,)
     # intensity and s1 are even in φ (cosine modes), s2 odd (sine modes)
     h_even, h_odd = ArcFourier.apply(h[:2], h[2], phi, n_modes)  # (2, M, g, Q), (M, g, Q)
-    return torch.cat([h_even, h_odd.unsqueeze(0)]) * bq, area
+    return torch.cat([h_even, h_odd.unsqueeze(0)]), area_q
+
+
+#: The facet sides of the last few table builds (:func:`_facet_side`), by what they depend on: μ, the
+#: layout (α, β, κ that place the nodes and set the mode count), the rules, dtype and device — not
+#: α, β, κ themselves. A fit's finite differences in α, β (and κ) on a frozen layout then rebuild
+#: only the cheap rest of the table (bq, the kernel, the products): 60–80 % of a κ = 0 build is
+#: the facet side. Only μ without autograd history is cached, and only sides of at most
+#: :data:`FACET_CACHE_MAX_ELEMENTS` elements (κ = 0: 3·65·Q; large κ layouts are not kept).
+_FACET_CACHE: OrderedDict[tuple, tuple[Tensor, Tensor]] = OrderedDict()
+FACET_CACHE_ENTRIES = 4
+FACET_CACHE_MAX_ELEMENTS = 1 << 21
+
+
+def clear_facet_cache() -> int:
+    """Empty the facet-side cache of :func:`build_body_table` (its memory back; the tables do not
+    change); returns how many entries it held."""
+    n = len(_FACET_CACHE)
+    _FACET_CACHE.clear()
+    return n
+
+
+def _facet_side(key: tuple, sq: Tensor, cq: Tensor, tg: Tensor, phi_np: np.ndarray | None,
+                wphi_np: np.ndarray | None, ior: Tensor,
+                n_modes: int, rows: int) -> tuple[Tensor, Tensor]:
+    """:func:`_facet_modes` of every row of the θ grid, ``rows`` at a time: h_modes (3, M, G, Q),
+    area_q (G, Q); from :data:`_FACET_CACHE` when it has ``key`` and μ carries no autograd history."""
+    cacheable = not ior.requires_grad
+    if cacheable and key in _FACET_CACHE:
+        _FACET_CACHE.move_to_end(key)
+        return _FACET_CACHE[key]
+
+    assert phi_np is not None and wphi_np is not None
+
+    def T(x: np.ndarray) -> Tensor:
+        return torch.as_tensor(x, dtype=sq.dtype, device=sq.device)
+
+    parts = [
+        _facet_modes(sq, cq, tg[g0 : g0 + rows], T(phi_np[g0 : g0 + rows]), T(wphi_np[g0 : g0 + rows]), ior, n_modes)
+        for g0 in range(0, tg.numel(), rows)
+    ]
+    side = torch.cat([hm for hm, _ in parts], dim=2), torch.cat([ar for _, ar in parts])
+    if cacheable and side[0].numel() <= FACET_CACHE_MAX_ELEMENTS:
+        _FACET_CACHE[key] = side
+        while len(_FACET_CACHE) > FACET_CACHE_ENTRIES:
+            _FACET_CACHE.popitem(last=False)
+    return side
 
 
 def _kernel_modes(cq_rows: Tensor, sq_rows: Tensor, cq: Tensor, sq: Tensor, cos_psi: Tensor, kappa: Tensor,
@@ -236,7 +291,6 @@ def build_body_table(
         n_dphi = 2 if n_modes == 1 else (129 if n_modes <= 20 else 257)
     warp = ThetaWarp.for_alpha(a)
     tg_np = warp.nodes(n_grid)
-    phi_np, wphi_np = arc_nodes(tq_np, tg_np, n_phi)  # (G, Q, n)
 
     def T(x: np.ndarray) -> Tensor:
         return torch.as_tensor(x, dtype=dt, device=dev)
@@ -247,13 +301,12 @@ def build_body_table(
     n_q = tq.numel()
     # the rows of the θ grid are independent: a few at a time keep the (rows, Q, n) temporaries small
     rows = max(1, chunk_elements // (n_q * n_phi))
-    parts = [
-        _facet_modes(sq, cq, bq, tg[g0 : g0 + rows], T(phi_np[g0 : g0 + rows]), T(wphi_np[g0 : g0 + rows]), ior, n_modes)
-        for g0 in range(0, n_grid, rows)
-    ]
-    h_modes = torch.cat([hm for hm, _ in parts], dim=2)  # (3, M, G, Q)
-    area = torch.cat([ar for _, ar in parts])  # P(θ_g) (spec §4)   (G,)
-    del parts
+    key = (float(ior.detach()), a, b, kap, n_grid, n_theta, max_width, n_modes, n_phi, rows, dt, str(dev))
+    cached = key in _FACET_CACHE and not ior.requires_grad
+    phi_np, wphi_np = (None, None) if cached else arc_nodes(tq_np, tg_np, n_phi)  # (G, Q, n)
+    h_raw, area_q = _facet_side(key, sq, cq, tg, phi_np, wphi_np, ior, n_modes, rows)
+    h_modes = h_raw * bq  # (3, M, G, Q)
+    area = (area_q * bq).sum(-1)  # P(θ_g) (spec §4)   (G,)
 
     m = torch.arange(n_modes, dtype=dt, device=dev)
     if n_modes == 1:

@@ -8,6 +8,10 @@ a. *global parameters* (μ, α, β, [κ]; k_s and per-pixel k_b in closed form) 
 b. *normals*: per-pixel Levenberg–Marquardt (:func:`polarshape.recover.normal_solver.refine_normals`),
    then neighbour propagation (:func:`polarshape.recover.normal_solver.propagate_normals`).
 
+From the third outer iteration on, when the material moved the same way in the last two (a crawl:
+shiny lobes, α against the normals under the highlight), the state is over-relaxed along its last
+change — material and normals 4× or 2× that change further — and kept only where that lowers the
+level's loss (:func:`_extrapolate`; the fixed point and the test below are unchanged).
 The alternation stops when the loss changed by ≤ 0.1 % over the last two outer iterations (a
 window, not one step) or after ``max_outer_iterations``. Finer levels start from the coarser normals
 upsampled bilinearly (:func:`upsample_normals`) and run step b only. With ``fit_kappa`` None, κ is
@@ -63,7 +67,7 @@ from polarshape.recover.normal_solver import (
 from polarshape.recover.observations import Observations, RecoveryInputs, downsample_inputs, flatten_observations
 from polarshape.recover.options import RecoveryOptions
 from polarshape.recover.reflectometry import (
-    ALPHA_GRID, channel_weights, fit_reflectance, render_parts, solve_albedos,
+    ALPHA_GRID, BOUNDS, channel_weights, fit_reflectance, render_parts, solve_albedos,
 )
 
 logger = logging.getLogger(__name__)
@@ -249,6 +253,72 @@ def _mean_loss(loss_pp: Tensor, obs: Observations) -> float:
     return float(loss_pp.sum() / obs.weight.sum().clamp_min(1.0))
 
 
+#: Material parameters the alternation extrapolates (:func:`_extrapolate`), each with its coordinate:
+#: log for the positive scale parameters, the value itself for μ (κ only when it is fitted).
+_EXTRAPOLATED: tuple[tuple[str, bool], ...] = (("ior", False), ("alpha", True), ("beta", True), ("k_s", True),
+                                               ("kappa", False))
+#: Extrapolation lengths tried, in units of the last outer iteration's change (longest first).
+EXTRAPOLATION_STEPS: tuple[float, ...] = (4.0, 2.0)
+#: The last two outer iterations' material changes must point this much the same way (cosine)
+#: for an extrapolation to be tried: a crawl, not an oscillation.
+EXTRAPOLATION_MIN_COSINE = 0.9
+
+
+def _material_coords(params: FMBRDFParams, kappa: bool) -> list[float]:
+    """The coordinates of :data:`_EXTRAPOLATED` (κ only when ``kappa``)."""
+    return [math.log(max(getattr(params, n), 1e-12)) if log else getattr(params, n)
+            for n, log in _EXTRAPOLATED if n != "kappa" or kappa]
+
+
+def _extrapolate(lv: _Level, previous: tuple[Tensor, FMBRDFParams], direction: list[float], loss_pp: Tensor,
+                 options: RecoveryOptions, polarised: bool, kappa: bool, log: SolveLog
+                 ) -> tuple[Tensor, float] | None:
+    """Over-relax a crawling alternation (updates ``lv`` and returns its per-pixel loss and the step
+    taken, or None when no step lowers the loss).
+
+    Where material and normals are correlated (a shiny lobe: α against the normals under the
+    highlight) each outer iteration moves both a little in the same direction (measured: α
+    0.141 → 0.111 over 17 iterations at 1–2 % each, the loss still falling). From the current
+    state x_k and the previous one x_{k−1} (``previous``: the level's normals and material),
+    x_k + t·(x_k − x_{k−1}) is evaluated for t in :data:`EXTRAPOLATION_STEPS` — the material in the
+    coordinates of :data:`_EXTRAPOLATED`, clamped to the fit's bounds, each pixel's normal along
+    its own chord — and the first that lowers the level's loss is taken (one table build and one
+    residual evaluation of the level per t). The alternation then goes on from there: its fixed
+    point and its convergence test are unchanged; a rejected try costs only its evaluation."""
+    t0 = time.perf_counter()
+    names = [n for n, _ in _EXTRAPOLATED if n != "kappa" or kappa]
+    logs = dict(_EXTRAPOLATED)
+    here = _material_coords(lv.params, kappa)
+    base = float(loss_pp.sum())
+    n_prev, _ = previous
+    try:
+        for t in EXTRAPOLATION_STEPS:
+            values = {}
+            for n, x, d in zip(names, here, direction):
+                v = math.exp(x + t * d) if logs[n] else x + t * d
+                lo, hi = BOUNDS.get(n, (0.0, math.inf))
+                values[n] = min(max(v, lo), hi)
+            trial = replace(lv.params, **values)
+            normals = unit(lv.n + t * (lv.n - n_prev))
+            facing = (normals * lv.obs.view).sum(-1) > 0
+            normals = torch.where(facing.unsqueeze(-1), normals, lv.n)
+            tables = build_tables(ior=trial.ior, alpha=trial.alpha, beta=trial.beta, kappa=trial.kappa,
+                                  device=lv.n.device)
+            problem = NormalProblem.build(tables, lv.obs.stokes, trial.k_s, options.per_pixel_albedo, trial.k_b,
+                                          polarised, lv.delta)
+            with torch.no_grad():
+                r, k_b = problem.residual(normals, lv.obs)
+                trial_pp = problem.loss(r)
+            log.count("extrapolations_tried")
+            if float(trial_pp.sum()) < base:
+                log.count("extrapolations_taken")
+                lv.params, lv.n, lv.k_b = trial, normals, k_b
+                return trial_pp, t
+        return None
+    finally:
+        log.add_time("extrapolation", t0)
+
+
 #: Smallest relative loss gain on all but the 2 % of pixels that gain most that keeps κ > 0
 #: (:func:`polarshape.recover.joint_solve.trimmed_gain`: a κ that only trades with α on a few
 #: highlight pixels is dropped).
@@ -374,7 +444,13 @@ def fit_level(inputs: RecoveryInputs, normals: Tensor, params: FMBRDFParams, opt
     window: list[float] = []
     start: tuple[Tensor, FMBRDFParams] | None = None  # the subsample after the first outer iteration
     outer = options.max_outer_iterations if fit_globals else 1
+    # the level after the previous outer iteration and that iteration's material change (_extrapolate)
+    previous: tuple[Tensor, FMBRDFParams] | None = None
+    change: list[float] | None = None
+    extrapolate = fit_globals and material_use != "fixed"
     for it in tqdm(range(outer), desc=f"level {level}", unit="iteration", disable=not progress):
+        if extrapolate and it >= 2:  # after the lobe-first schedule of the first two
+            previous = (lv.n.clone(), replace(lv.params))
         if fit_globals:
             t0 = time.perf_counter()
             lv.params = _global_step(lv.n[sub_idx], obs.select(sub_idx), lv.params, options, it=it,
@@ -392,9 +468,19 @@ def fit_level(inputs: RecoveryInputs, normals: Tensor, params: FMBRDFParams, opt
                 loss_pp = problem.with_delta(new_delta).pixel_loss(lv.n, obs)
         if it == 0 and fit_globals:
             start = (lv.n[sub_idx].clone(), replace(lv.params))
+        extrapolated = None
+        if previous is not None:
+            kappa = bool(fit_kappa)
+            step = [a - b for a, b in zip(_material_coords(lv.params, kappa), _material_coords(previous[1], kappa))]
+            if change is not None and _cosine(step, change) >= EXTRAPOLATION_MIN_COSINE:
+                done = _extrapolate(lv, previous, step, loss_pp, options, polarised, kappa, log)
+                if done is not None:
+                    loss_pp, extrapolated = done
+            change = step
         loss = _mean_loss(loss_pp, obs)
         log.history.append({"stage": f"level{level}", "iteration": it, "loss": loss, "lm_iterations": n_iter,
-                            "seconds": time.perf_counter() - log.t_start, **lv.params.as_dict()})
+                            "seconds": time.perf_counter() - log.t_start, **lv.params.as_dict(),
+                            **({} if extrapolated is None else {"extrapolated": extrapolated})})
         logger.info("level %d outer %d: loss %.6g, %s", level, it, loss, lv.params.as_dict())
         window.append(loss)
         # converged: the loss changed by ≤ 0.1 % over the last two outer iterations (a window), relative to
@@ -418,6 +504,12 @@ def fit_level(inputs: RecoveryInputs, normals: Tensor, params: FMBRDFParams, opt
     if not kappa_decided and fit_globals and not fit_kappa:
         log.skipped.append("kappa: not tested (alternation did not converge within max_outer_iterations): κ kept at 0")
     return _state_of(lv, normals)
+
+
+def _cosine(a: list[float], b: list[float]) -> float:
+    """Cosine of the angle between two vectors (0 when either is 0)."""
+    na, nb = math.sqrt(sum(x * x for x in a)), math.sqrt(sum(x * x for x in b))
+    return sum(x * y for x, y in zip(a, b)) / (na * nb) if na > 0 and nb > 0 else 0.0
 
 
 def _state_of(lv: _Level, normals: Tensor) -> FMBRDFState:

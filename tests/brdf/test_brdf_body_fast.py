@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from polarshape.brdf import build_tables
-from polarshape.brdf.body_fast import BodyTable, body_stokes_fast, build_body_table
+from polarshape.brdf.body_fast import BodyTable, body_stokes_fast, build_body_table, clear_facet_cache
 from polarshape.brdf.distribution import d_normalisation
 
 
@@ -89,3 +89,21 @@ def test_a_pixel_with_view_along_the_normal_leaves_the_others_unchanged(kappa: f
     mixed = body_stokes_fast(tables.body, n2, torch.cat([l, l[:1]]), v2, k_b=1.0)
     torch.testing.assert_close(mixed[:-1], plain, rtol=1e-15, atol=0.0)
     assert bool(torch.isfinite(mixed).all())
+
+
+@pytest.mark.parametrize("kappa", [0.0, 20.0])
+def test_cached_facet_side_gives_the_table_built_afresh(kappa: float) -> None:
+    """Builds on one frozen layout share their facet side (a fit's finite differences): every table then
+    equals the one built with an empty cache — a changed μ is a new side, a changed α, β or κ is not."""
+    layout = (0.25, 2.0, kappa)
+    variants = [dict(ior=1.5, alpha=0.25, beta=2.0, kappa=kappa), dict(ior=1.5, alpha=0.2503, beta=2.0, kappa=kappa),
+                dict(ior=1.5, alpha=0.25, beta=2.004, kappa=kappa * 1.01), dict(ior=1.52, alpha=0.25, beta=2.0, kappa=kappa)]
+    clear_facet_cache()
+    shared = [build_tables(**v, layout=layout, n_grid=17).body.values for v in variants]
+    for v, values in zip(variants, shared):
+        clear_facet_cache()
+        fresh = build_tables(**v, layout=layout, n_grid=17).body.values
+        assert torch.equal(values, fresh), v
+    assert not torch.equal(shared[0], shared[3])  # μ moved the table: the cache did not hand back μ 1.5's side
+    assert clear_facet_cache() >= 1
+
