@@ -1,6 +1,7 @@
 """Benchmark: near-field recovery against today's plane-placed point lights, on the same captures.
 
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/nearfield.py [--size 64] [--scenes nearfield_sphere,...]
+        [--methods plane-placed,near-field] [--fit-kappa auto|true|false]
 
 Renders each scene of configs/scenes/ (default: nearfield_sphere, nearfield_blob — a perspective camera, 12
 LEDs on a ring 3.5 object radii away — and textured, orthographic under 4 point lights) at ``size``
@@ -51,9 +52,10 @@ def render(folder: Path, name: str, size: int) -> tuple[Path, float]:
     return folder / name, float(scene["objects"][0]["shape"]["center"][2])
 
 
-def run(capture: Path, out: Path, *, nearfield: bool, reference: float) -> tuple[dict, float]:
+def run(capture: Path, out: Path, *, nearfield: bool, reference: float, fit_kappa: bool | None = None
+        ) -> tuple[dict, float]:
     config = RunConfig.model_validate({
-        "input": {"type": "capture", "path": str(capture)}, "progress": False,
+        "input": {"type": "capture", "path": str(capture)}, "progress": False, "recovery": {"fit_kappa": fit_kappa},
         "nearfield": {"enabled": "auto" if nearfield else False},
         "integration": {"reference_depth_m": reference},
         "validation": {"holdout": "none"}, "report": {"enabled": False}, "mesh": {"obj": False},
@@ -68,7 +70,13 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--size", type=int, default=64, help="super-pixels across (default 64)")
     parser.add_argument("--scenes", default="nearfield_sphere,nearfield_blob,textured")
+    parser.add_argument("--methods", default="plane-placed,near-field", help="which runs (default both)")
+    parser.add_argument("--fit-kappa", choices=("auto", "true", "false"), default="auto",
+                        help="recovery.fit_kappa: auto (the recovery's κ test, the default), or κ forced on / off")
     args = parser.parse_args()
+    methods = args.methods.split(",")
+    if unknown := set(methods) - {"plane-placed", "near-field"}:
+        parser.error(f"--methods: unknown {sorted(unknown)}; use plane-placed and/or near-field")
     print("| scene | method | reference depth | mean ° | median ° | depth RMSE % of distance | depth RMSE % of range "
           "(aligned) | median depth m (truth) | rounds | seconds |")
     print("|---|---|---|---|---|---|---|---|---|---|")
@@ -78,7 +86,10 @@ def main() -> None:
             capture, centre = render(folder, name, args.size)
             truth = np.load(capture / "ground_truth" / "depth.npy")
             for label, nearfield, reference in (("plane-placed", False, centre), ("near-field", True, 1.0)):
-                params, seconds = run(capture, folder / f"{name}_{label}", nearfield=nearfield, reference=reference)
+                if label not in methods:
+                    continue
+                params, seconds = run(capture, folder / f"{name}_{label}", nearfield=nearfield, reference=reference,
+                                      fit_kappa={"auto": None, "true": True, "false": False}[args.fit_kappa])
                 m = params["metrics"]
                 record = params["nearfield"]
                 rounds = len(record["iterations"]) if record.get("enabled") else "–"
