@@ -372,7 +372,7 @@ def _kappa_decision(fit: JointResult, obs_sub: Observations, names: tuple[str, .
     floor_sum = floor * float(obs_sub.weight.sum())  # the same floor for sums of per-pixel losses
     # the test on coarse tables (κ tables cost 0.1–0.6 s a build), to a tenth of the decision's 1 % (tol
     # 1e-3: κ-free data stop after one iteration), stopped once its gain clearly ends below
-    # KAPPA_KEEP_GAIN; a kept κ is polished on full tables to 1e-5
+    # KAPPA_KEEP_GAIN; a kept κ is polished on full tables (KAPPA_POLISH_TOL)
     trial, gain = nested_kappa(fit, obs_sub, names=names, decide_gain=KAPPA_KEEP_GAIN,
                                **{**kwargs, "n_grid": KAPPA_TEST_GRID, "jac_grid": KAPPA_JAC_GRID, "tol": 1e-3})
     _joint_record(trial, level, "joint_kappa", log)
