@@ -66,7 +66,8 @@ from polarshape.recover.reflectometry import BOUNDS, render_parts, solve_albedos
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["JointResult", "TABLE_PARAMS", "joint_solve", "loss_floor", "nested_kappa", "schur_step", "trimmed_gain"]
+__all__ = ["JointResult", "TABLE_PARAMS", "joint_solve", "loss_floor", "nested_kappa", "schur_step", "settled",
+           "trimmed_gain"]
 
 #: The global parameters that need a table build, in the order of the global vector.
 TABLE_PARAMS: tuple[str, ...] = ("ior", "alpha", "beta", "kappa")
@@ -465,6 +466,20 @@ def _clearly_below(target: float, floor: float) -> Callable[[float, list[dict]],
         rho = last / prev
         gain = (initial - history[-1]["loss"]) / max(initial, floor)
         return gain + 2.0 * last * rho / (1.0 - rho) < target
+
+    return stop
+
+
+def settled(tol: float, rate: float) -> Callable[[float, list[dict]], bool]:
+    """A :func:`joint_solve` ``stop`` test: True once the last iteration's relative loss change c is
+    below ``tol`` and below ``rate`` × the change c₋₁ before it (a fast rate ρ = c / c₋₁: the rest of
+    the descent is at most c·ρ / (1 − ρ)). A solve that crawls (ρ near 1) runs on to its own ``tol``."""
+
+    def stop(initial: float, history: list[dict]) -> bool:
+        if len(history) < 2:
+            return False
+        prev, last = history[-2]["rel_change"], history[-1]["rel_change"]
+        return 0.0 <= last < tol and last < rate * prev
 
     return stop
 

@@ -12,7 +12,9 @@ import torch
 from polarshape.brdf.params import FMBRDFParams
 from polarshape.metrics import angular_error_deg
 from polarshape.recover.coarse_to_fine import solve_fmbrdf
-from polarshape.recover.joint_solve import joint_solve, loss_floor, nested_kappa, schur_step, trimmed_gain
+from polarshape.recover.joint_solve import (
+    joint_solve, loss_floor, nested_kappa, schur_step, settled, trimmed_gain,
+)
 from polarshape.recover.observations import Observations, flatten_observations
 from polarshape.recover.options import RecoveryOptions
 
@@ -197,6 +199,18 @@ def test_joint_solve_stop_ends_the_solve_when_the_caller_has_decided() -> None:
     fit = joint_solve(start, obs, FMBRDFParams(ior=1.5, alpha=0.4, beta=2.0), stop=stop, **kw)
     assert fit.iterations == 2 and [n for _, n in seen] == [1, 2], (fit.iterations, seen)
     assert seen[0][0] == fit.initial_loss and not fit.converged
+
+
+def test_settled_stops_only_a_fast_descent_below_its_tolerance() -> None:
+    stop = settled(1e-3, 0.1)
+
+    def h(*rel: float) -> list[dict]:
+        return [{"rel_change": r} for r in rel]
+
+    assert not stop(1.0, h(5e-4))  # one iteration: no rate yet
+    assert stop(1.0, h(0.1, 7e-4))  # below 0.1 % and 140× smaller than the change before
+    assert not stop(1.0, h(2e-3, 7e-4))  # below 0.1 % but crawling (ρ 0.35): the rest may be large
+    assert not stop(1.0, h(0.2, 0.015))  # fast, but the change itself above 0.1 %
 
 
 def test_trimmed_gain_is_measured_against_a_floor() -> None:
