@@ -67,6 +67,18 @@ def _refine(capture, reference: float, options: NearFieldOptions = NearFieldOpti
     return baseline, found
 
 
+def _as_fmbrdf_fit(inputs, *, kappa: float):
+    """A stand-in for the run's model fit: Lambertian normals and albedo reported as an FMBRDF fit of a fixed
+    material (μ 1.5, α 0.3, β 2, the given κ), for tests of what the near-field loop asks of its fits."""
+    from polarshape.normals import NormalsResult
+
+    fit = recover_normals(inputs, RecoveryOptions(model="lambertian"))
+    params = {"ior": 1.5, "alpha": 0.3, "beta": 2.0, "kappa": kappa, "k_s": 1.0, "k_b": 0.5}
+    return NormalsResult(normals=fit.normals, albedo=fit.albedo, params=params, model="fmbrdf", mask=inputs.mask,
+                         rendered=fit.rendered, observed=fit.observed, initial_normals=fit.initial_normals,
+                         initial_valid=fit.initial_valid)
+
+
 def _mean_error(result, capture) -> float:
     mask = result.mask.numpy()
     return float(np.mean(angular_error_deg(result.normals.numpy(), capture.ground_truth["normals"], mask)[mask]))
@@ -267,7 +279,6 @@ def test_textured_object_material_is_fitted_on_its_fully_observed_pixels(tmp_pat
     settled at α 0.15 for 0.2, on its bright cells alone at 0.24, on its fully observed pixels at 0.200 (true
     L and E) — then holds it (``material_use: fixed``) for every pixel; an untextured capture keeps one plain
     fit per round."""
-    from polarshape.normals import NormalsResult
     from polarshape.recover.coarse_to_fine import KnownMaterial
 
     scene = _scene()
@@ -285,11 +296,7 @@ def test_textured_object_material_is_fitted_on_its_fully_observed_pixels(tmp_pat
     def recover(new_inputs, material=None, **change):
         calls.append((new_inputs.mask, material))
         changes.append(change)
-        fit = recover_normals(new_inputs, RecoveryOptions(model="lambertian"))
-        params = {"ior": 1.5, "alpha": 0.3, "beta": 2.0, "kappa": 0.0, "k_s": 1.0, "k_b": 0.5}
-        return NormalsResult(normals=fit.normals, albedo=fit.albedo, params=params, model="fmbrdf",
-                             mask=new_inputs.mask, rendered=fit.rendered, observed=fit.observed,
-                             initial_normals=fit.initial_normals, initial_valid=fit.initial_valid)
+        return _as_fmbrdf_fit(new_inputs, kappa=0.0)
 
     def integrate(n, m, init):
         return integrate_normals(n, m, camera=camera, reference_depth=1.0, depth_init=init)
@@ -324,8 +331,6 @@ def test_a_kappa_kept_by_one_model_fit_stays_in_the_later_ones(tmp_path: Path, f
     """The κ test's gain moves with each round's lights (the 128² near-field blob, true κ 20: kept at 27.4 %
     in the second fit, dropped at 21.8 % in the third): once a fit kept κ, the later fits are asked for it
     (``fit_kappa=True``); while none has, they decide for themselves (no change)."""
-    from polarshape.normals import NormalsResult
-
     with SimulatedCamera(parse_scene_config(_scene()), seed=5) as sim:
         capture = sim.render_capture(tmp_path / "capture", progress=False)
     camera = capture_camera(capture, "centre", None)
@@ -336,12 +341,8 @@ def test_a_kappa_kept_by_one_model_fit_stays_in_the_later_ones(tmp_path: Path, f
 
     def recover(new_inputs, material=None, **change):
         changes.append(change)
-        fit = recover_normals(new_inputs, RecoveryOptions(model="lambertian"))
         kappa = first_kappa if len(changes) == 1 else (20.0 if change.get("fit_kappa") else 0.0)
-        params = {"ior": 1.5, "alpha": 0.3, "beta": 2.0, "kappa": kappa, "k_s": 1.0, "k_b": 0.5}
-        return NormalsResult(normals=fit.normals, albedo=fit.albedo, params=params, model="fmbrdf",
-                             mask=new_inputs.mask, rendered=fit.rendered, observed=fit.observed,
-                             initial_normals=fit.initial_normals, initial_valid=fit.initial_valid)
+        return _as_fmbrdf_fit(new_inputs, kappa=kappa)
 
     def integrate(n, m, init):
         return integrate_normals(n, m, camera=camera, reference_depth=1.0, depth_init=init)

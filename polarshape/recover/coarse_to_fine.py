@@ -236,13 +236,17 @@ class _Level:
     neighbours: Tensor | None
 
 
+def _level_problem(lv: _Level, params: FMBRDFParams, options: RecoveryOptions, polarised: bool) -> NormalProblem:
+    """The per-pixel normal problem of the level's observations under material ``params`` (its tables built)."""
+    return NormalProblem.build(params.build_tables(device=lv.n.device), lv.obs.stokes, params.k_s,
+                               options.per_pixel_albedo, params.k_b, polarised, lv.delta)
+
+
 def _normal_step(lv: _Level, options: RecoveryOptions, polarised: bool, *, max_iter: int, level: int, it: int
                  ) -> tuple[NormalProblem, Tensor, int]:
     """Step b: per-pixel normals for the level's material (updates ``lv.n``, ``lv.k_b``); returns the
     problem, the per-pixel loss and the LM iterations."""
-    p = lv.params
-    tables = build_tables(ior=p.ior, alpha=p.alpha, beta=p.beta, kappa=p.kappa, device=lv.n.device)
-    problem = NormalProblem.build(tables, lv.obs.stokes, p.k_s, options.per_pixel_albedo, p.k_b, polarised, lv.delta)
+    problem = _level_problem(lv, lv.params, options, polarised)
     lv.n, lv.k_b, loss_pp, n_iter = refine_normals(problem, lv.n, lv.obs, max_iter=max_iter)
     if lv.neighbours is not None:
         lv.n, lv.k_b, loss_pp, moved = propagate_normals(problem, lv.n, lv.k_b, loss_pp, lv.obs, lv.neighbours)
@@ -304,10 +308,7 @@ def _extrapolate(lv: _Level, previous: tuple[Tensor, FMBRDFParams], direction: l
             normals = unit(lv.n + t * (lv.n - n_prev))
             facing = (normals * lv.obs.view).sum(-1) > 0
             normals = torch.where(facing.unsqueeze(-1), normals, lv.n)
-            tables = build_tables(ior=trial.ior, alpha=trial.alpha, beta=trial.beta, kappa=trial.kappa,
-                                  device=lv.n.device)
-            problem = NormalProblem.build(tables, lv.obs.stokes, trial.k_s, options.per_pixel_albedo, trial.k_b,
-                                          polarised, lv.delta)
+            problem = _level_problem(lv, trial, options, polarised)
             with torch.no_grad():
                 r, k_b = problem.residual(normals, lv.obs)
                 trial_pp = problem.loss(r)
