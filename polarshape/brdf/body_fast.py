@@ -103,22 +103,47 @@ def arc_nodes(theta: np.ndarray, theta_w: np.ndarray, n: int) -> tuple[np.ndarra
     return phic[..., None] * x, phic[..., None] * w
 
 
+def fold_arc_rule(phi: np.ndarray, wphi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The half (φ ≥ 0) of symmetric arc rules, for integrands even or odd in φ.
+
+    The Gauss–Legendre nodes of :func:`arc_nodes` are exactly symmetric (x_{n−1−i} = −x_i, equal
+    weights, x = 0 for odd n), so Σ_n f(φ_n) w_n = Σ_{φ_n ≥ 0} f(φ_n) w'_n with w' = 2w for φ > 0
+    (w for the node φ = 0) when f is even, and Σ_n f(φ_n) cos(mφ_n) w_n, Σ_n f(φ_n) sin(mφ_n) w_n
+    likewise for f even, resp. odd: the same sums on half the nodes (spec §7's facet side is even in φ
+    for intensity and s1, odd for s2).
+
+    Args:
+        phi, wphi: (..., n) rules of :func:`arc_nodes`.
+
+    Returns:
+        phi, weights: (..., ⌈n/2⌉) each, φ ≥ 0.
+    """
+    n = phi.shape[-1]
+    half = np.full(n - n // 2, 2.0)
+    if n % 2:
+        half[0] = 1.0  # the node φ = 0 is its own mirror
+    return phi[..., n // 2 :], wphi[..., n // 2 :] * half
+
+
 class ArcFourier(torch.autograd.Function):
     """Azimuthal Fourier coefficients on the arc rules: for m = 0..M−1,
     even[c, m] = Σ_n h_even[c, ..., n] cos(m φ_n) and odd[m] = Σ_n h_odd[..., n] sin(m φ_n).
 
-    cos mφ and sin mφ come from the rotation recurrence (angle addition) in both passes, so no
-    (…, n, M) tensor is ever stored: memory O(G·Q·n) instead of O(G·Q·n·M), and the backward pass
-    (the same sums transposed) costs as much as the forward one.
+    The (φ-node, φ-pair) sums are batched matrix products with a block of cos mφ, sin mφ (all M
+    modes of a few arc pairs at a time, computed directly): each block's (p, n, M) tensors are no
+    larger than φ itself, so memory stays O(G·Q·n) and not O(G·Q·n·M). The backward pass is the
+    same products transposed (the blocks are recomputed, not stored).
     """
 
     @staticmethod
-    def _modes(phi: Tensor, n_modes: int):  # noqa: ANN205
-        c1, s1 = torch.cos(phi), torch.sin(phi)
-        c, s = torch.ones_like(phi), torch.zeros_like(phi)
-        for _ in range(n_modes):
-            yield c, s
-            c, s = c * c1 - s * s1, s * c1 + c * s1
+    def _blocks(phi: Tensor, n_modes: int):  # noqa: ANN205
+        """(slice of the flattened arc pairs, cos mφ, sin mφ (p, n, M)) for blocks of pairs."""
+        flat = phi.reshape(-1, phi.shape[-1])  # (P, n)
+        m = torch.arange(n_modes, dtype=phi.dtype, device=phi.device)
+        step = max(1, flat.shape[0] // n_modes)  # a block's (p, n, M) ≤ φ's P·n elements
+        for p0 in range(0, flat.shape[0], step):
+            angle = flat[p0 : p0 + step, :, None] * m  # (p, n, M)
+            yield slice(p0, p0 + step), torch.cos(angle), torch.sin(angle)
 
     @staticmethod
     def forward(ctx, h_even: Tensor, h_odd: Tensor, phi: Tensor, n_modes: int) -> tuple[Tensor, Tensor]:  # noqa: ANN001
@@ -126,9 +151,14 @@ class ArcFourier(torch.autograd.Function):
         ctx.n_modes = n_modes
         if n_modes == 1:  # κ = 0: only m = 0 (cos 0 = 1, sin 0 = 0), no trigonometry needed
             return h_even.sum(-1).unsqueeze(1), torch.zeros_like(h_odd[..., 0]).unsqueeze(0)
-        even = torch.stack([(h_even * c).sum(-1) for c, _ in ArcFourier._modes(phi, n_modes)], dim=1)
-        odd = torch.stack([(h_odd * s).sum(-1) for _, s in ArcFourier._modes(phi, n_modes)], dim=0)
-        return even, odd
+        n_c, pairs = h_even.shape[0], phi.shape[:-1]
+        he, ho = h_even.reshape(n_c, -1, phi.shape[-1]), h_odd.reshape(-1, phi.shape[-1])  # (C, P, n), (P, n)
+        even = phi.new_empty((n_c, n_modes, he.shape[1]))
+        odd = phi.new_empty((n_modes, he.shape[1]))
+        for sl, cos_m, sin_m in ArcFourier._blocks(phi, n_modes):
+            even[:, :, sl] = torch.einsum("cpn,pnm->cmp", he[:, sl], cos_m)
+            odd[:, sl] = torch.einsum("pn,pnm->mp", ho[sl], sin_m)
+        return even.reshape(n_c, n_modes, *pairs), odd.reshape(n_modes, *pairs)
 
     @staticmethod
     def backward(ctx, g_even: Tensor, g_odd: Tensor):  # noqa: ANN001, ANN205
@@ -136,12 +166,14 @@ class ArcFourier(torch.autograd.Function):
         if ctx.n_modes == 1:
             d_even = g_even[:, 0].unsqueeze(-1).expand(g_even.shape[0], *phi.shape).contiguous()
             return d_even, torch.zeros_like(phi), None, None
-        d_even = torch.zeros((g_even.shape[0], *phi.shape), dtype=phi.dtype, device=phi.device)
-        d_odd = torch.zeros_like(phi)
-        for i, (c, s) in enumerate(ArcFourier._modes(phi, ctx.n_modes)):
-            d_even += g_even[:, i].unsqueeze(-1) * c
-            d_odd += g_odd[i].unsqueeze(-1) * s
-        return d_even, d_odd, None, None
+        n_c, n = g_even.shape[0], phi.shape[-1]
+        ge, go = g_even.reshape(n_c, ctx.n_modes, -1), g_odd.reshape(ctx.n_modes, -1)  # (C, M, P), (M, P)
+        d_even = phi.new_empty((n_c, ge.shape[2], n))
+        d_odd = phi.new_empty((ge.shape[2], n))
+        for sl, cos_m, sin_m in ArcFourier._blocks(phi, ctx.n_modes):
+            d_even[:, sl] = torch.einsum("cmp,pnm->cpn", ge[:, :, sl], cos_m)
+            d_odd[sl] = torch.einsum("mp,pnm->pn", go[:, sl], sin_m)
+        return d_even.reshape(n_c, *phi.shape), d_odd.reshape(phi.shape), None, None
 
 
 def n_fourier_modes(kappa: float, alpha: float, beta: float, *, log_tol: float = 14.0, cap: int = 160) -> int:
@@ -237,12 +269,36 @@ def _facet_side(key: tuple, sq: Tensor, cq: Tensor, tg: Tensor, phi_np: np.ndarr
     return side
 
 
-def _kernel_modes(cq_rows: Tensor, sq_rows: Tensor, cq: Tensor, sq: Tensor, cos_psi: Tensor, kappa: Tensor,
-                  n_modes: int) -> Tensor:
-    """(q, Q, M) cosine-series coefficients (before the factor 2 of m ≥ 1) of exp(κ(n·n_i − 1)) in
-    φ − φ' for the facet rows (q,) against all nodes (Q,), by FFT over the (P,) azimuths cos ψ."""
+def kernel_cosine_rule(n_modes: int, n_psi: int, dtype: torch.dtype, device: torch.device | str) -> tuple[Tensor, Tensor]:
+    """The half-period samples and cosine-series matrix of :func:`_kernel_modes`.
+
+    A function f(ψ) even in ψ, sampled at ψ_k = 2πk/P (k = 0..P−1, P even), has the cosine series
+    f = Σ_m a_m cos mψ with a_0 = Re F_0/P, a_m = 2 Re F_m/P (F = DFT of the samples), and by
+    evenness Re F_m = Σ_{k=0}^{P/2} w_k f(ψ_k) cos(mψ_k) with w = (1, 2, …, 2, 1): half the samples and
+    one real matrix product (forward and backward) instead of a complex FFT.
+
+    Args:
+        n_modes: M; n_psi: P (even).
+
+    Returns:
+        cos_psi: (P/2 + 1,) cos ψ_k; basis: (P/2 + 1, M) with a = f(ψ_k) @ basis.
+    """
+    k = torch.arange(n_psi // 2 + 1, dtype=dtype, device=device)
+    cos_psi = torch.cos(k * (2.0 * math.pi / n_psi))
+    m = torch.arange(n_modes, dtype=dtype, device=device)
+    w = torch.where((k == 0) | (k == n_psi // 2), 1.0, 2.0)[:, None] * torch.where(m == 0, 1.0, 2.0)  # (P/2+1, M)
+    # cos(2π (m k mod P)/P): the angle reduced exactly, so every entry is as accurate as cos ψ_k itself
+    basis = w * torch.cos(torch.remainder(k[:, None] * m, n_psi) * (2.0 * math.pi / n_psi)) / n_psi
+    return cos_psi, basis
+
+
+def _kernel_modes(cq_rows: Tensor, sq_rows: Tensor, cq: Tensor, sq: Tensor, cos_psi: Tensor, basis: Tensor,
+                  kappa: Tensor) -> Tensor:
+    """(q, Q, M) cosine-series coefficients of exp(κ(n·n_i − 1)) in φ − φ' for the facet rows (q,)
+    against all nodes (Q,), from the half-period azimuths cos ψ (P/2 + 1,) and the matrix ``basis``
+    (P/2 + 1, M) of :func:`kernel_cosine_rule` (the kernel is even in ψ)."""
     arg = (cq_rows[:, None] * cq[None, :] - 1.0).unsqueeze(-1) + (sq_rows[:, None] * sq[None, :]).unsqueeze(-1) * cos_psi
-    return torch.fft.rfft(torch.exp(kappa * arg), dim=-1).real[..., :n_modes] / cos_psi.numel()
+    return torch.matmul(torch.exp(kappa * arg), basis)
 
 
 def build_body_table(
@@ -304,6 +360,8 @@ def build_body_table(
     key = (float(ior.detach()), a, b, kap, n_grid, n_theta, max_width, n_modes, n_phi, rows, dt, str(dev))
     cached = key in _FACET_CACHE and not ior.requires_grad
     phi_np, wphi_np = (None, None) if cached else arc_nodes(tq_np, tg_np, n_phi)  # (G, Q, n)
+    if not cached and n_modes > 1:  # κ > 0: the facet side on the φ ≥ 0 half of the arcs (even/odd in φ)
+        phi_np, wphi_np = fold_arc_rule(phi_np, wphi_np)  # (G, Q, ⌈n/2⌉)
     h_raw, area_q = _facet_side(key, sq, cq, tg, phi_np, wphi_np, ior, n_modes, rows)
     h_modes = h_raw * bq  # (3, M, G, Q)
     area = (area_q * bq).sum(-1)  # P(θ_g) (spec §4)   (G,)
@@ -312,15 +370,12 @@ def build_body_table(
     if n_modes == 1:
         k_m = torch.ones(1, n_q, n_q, dtype=dt, device=dev)
     else:
-        n_psi = 2 * n_modes + 64
-        psi = torch.arange(n_psi, dtype=dt, device=dev) * (2.0 * math.pi / n_psi)
-        cos_psi = torch.cos(psi)
-        q_rows = max(1, chunk_elements // (n_q * n_psi))
+        cos_psi, basis = kernel_cosine_rule(n_modes, 2 * n_modes + 64, dt, dev)  # (P/2+1,), (P/2+1, M)
+        q_rows = max(1, chunk_elements // (n_q * cos_psi.numel()))
         spec = torch.cat([  # (Q, Q, M), θ rows a few at a time
-            _kernel_modes(cq[q0 : q0 + q_rows], sq[q0 : q0 + q_rows], cq, sq, cos_psi, kappa, n_modes)
+            _kernel_modes(cq[q0 : q0 + q_rows], sq[q0 : q0 + q_rows], cq, sq, cos_psi, basis, kappa)
             for q0 in range(0, n_q, q_rows)
         ])
-        spec = spec * torch.where(m == 0, 1.0, 2.0)
         k_m = spec.permute(2, 0, 1)  # (M,Q,Q): exp(κ(n·n_i−1)) = Σ k_m cos m(φ−φ')
     z = 2.0 * math.pi * (bq[:, None] * k_m[0]).sum(0)  # Z(θ') of eq. 20   (Q,)
     g_modes = h_modes[0] / z  # entry side: [n_i·L]₊ D T+(θ_i) / Z   (M, G, Q)
@@ -329,15 +384,14 @@ def build_body_table(
 
     dphi = torch.linspace(0.0, math.pi, n_dphi, dtype=dt, device=dev)
     md = m[:, None] * dphi  # (M, F)
-    j = torch.stack(
-        [
-            torch.einsum("mgh,mf->ghf", amp[0], torch.cos(md)),
-            torch.einsum("mgh,mf->ghf", amp[1], torch.cos(md)),
-            torch.einsum("mgh,mf->ghf", amp[2], torch.sin(md)),
-        ]
-    )
-    w0 = (j[0] / (area[:, None, None] * area[None, :, None])).clamp_min(1e-300)
-    values = torch.stack([torch.log(w0), j[1] / j[0].clamp_min(1e-300), j[2] / j[0].clamp_min(1e-300)], dim=-1)
+    # three (G, G, F) tensors, not one stacked: indexing a stack would cost a full-size zero fill per
+    # channel in the backward pass
+    j0 = torch.einsum("mgh,mf->ghf", amp[0], torch.cos(md))
+    j1 = torch.einsum("mgh,mf->ghf", amp[1], torch.cos(md))
+    j2 = torch.einsum("mgh,mf->ghf", amp[2], torch.sin(md))
+    w0 = (j0 / (area[:, None, None] * area[None, :, None])).clamp_min(1e-300)
+    j0c = j0.clamp_min(1e-300)
+    values = torch.stack([torch.log(w0), j1 / j0c, j2 / j0c], dim=-1)
     return BodyTable(values=values.contiguous(), warp=warp, n_modes=n_modes)
 
 
