@@ -8,7 +8,16 @@ import pytest
 import torch
 
 from polarshape.brdf import build_tables
-from polarshape.brdf.body_fast import BodyTable, body_stokes_fast, build_body_table, clear_facet_cache
+from polarshape.brdf.body_fast import (
+    ArcFourier,
+    BodyTable,
+    arc_nodes,
+    body_stokes_fast,
+    build_body_table,
+    clear_facet_cache,
+    fold_arc_rule,
+    kernel_cosine_rule,
+)
 from polarshape.brdf.distribution import d_normalisation
 
 
@@ -35,6 +44,81 @@ def test_body_table_gradient_does_not_depend_on_the_chunk_size() -> None:
                          chunk_elements=chunk).values.sum().backward()
         grads.append(k.grad)
     torch.testing.assert_close(grads[1], grads[0], rtol=1e-12, atol=0.0)
+
+
+def _arc_inputs(shape: tuple[int, ...], n: int, seed: int = 0) -> tuple[torch.Tensor, ...]:
+    """Random h_even (2, *shape, n), h_odd (*shape, n) and angles φ (*shape, n) in (−π, π)."""
+    gen = torch.Generator().manual_seed(seed)
+    f64 = torch.float64
+    phi = (torch.rand(*shape, n, generator=gen, dtype=f64) * 2.0 - 1.0) * math.pi
+    return torch.randn(2, *shape, n, generator=gen, dtype=f64), torch.randn(*shape, n, generator=gen, dtype=f64), phi
+
+
+def _direct_modes(h_even: torch.Tensor, h_odd: torch.Tensor, phi: torch.Tensor, n_modes: int) -> tuple[torch.Tensor, ...]:
+    """The sums of ArcFourier written out with one (..., n, M) tensor of cos mφ, sin mφ."""
+    angle = phi.unsqueeze(-1) * torch.arange(n_modes, dtype=phi.dtype)  # (..., n, M)
+    even = (h_even.unsqueeze(-1) * torch.cos(angle)).sum(-2).movedim(-1, 1)  # (2, M, ...)
+    odd = (h_odd.unsqueeze(-1) * torch.sin(angle)).sum(-2).movedim(-1, 0)  # (M, ...)
+    return even, odd
+
+
+@pytest.mark.parametrize("n_modes", [2, 7, 41])
+def test_arc_fourier_gives_the_direct_sums(n_modes: int) -> None:
+    """The blocked products equal the written-out sums for every mode, pair and channel (the pair count,
+    3·5 = 15, is not a multiple of the block)."""
+    h_even, h_odd, phi = _arc_inputs((3, 5), 11)
+    even, odd = ArcFourier.apply(h_even, h_odd, phi, n_modes)
+    ref_even, ref_odd = _direct_modes(h_even, h_odd, phi, n_modes)
+    assert even.shape == (2, n_modes, 3, 5) and odd.shape == (n_modes, 3, 5)
+    torch.testing.assert_close(even, ref_even, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(odd, ref_odd, rtol=1e-12, atol=1e-12)
+
+
+def test_arc_fourier_backward_is_the_transposed_product() -> None:
+    """gradcheck of the custom backward (non-square pairs, nodes and modes: a wrong transpose or
+    channel fails) and its agreement with autograd through the written-out sums."""
+    h_even, h_odd, phi = _arc_inputs((2, 3), 5, seed=1)
+    h_even.requires_grad_(True)
+    h_odd.requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda e, o: ArcFourier.apply(e, o, phi, 7), (h_even, h_odd))
+    gen = torch.Generator().manual_seed(2)
+    w_even, w_odd = torch.randn(2, 7, 2, 3, generator=gen, dtype=torch.float64), torch.randn(7, 2, 3, generator=gen, dtype=torch.float64)
+    grads = []
+    for fn in (ArcFourier.apply, _direct_modes):
+        even, odd = fn(h_even, h_odd, phi, 7)
+        grads.append(torch.autograd.grad((even * w_even).sum() + (odd * w_odd).sum(), (h_even, h_odd)))
+    for got, ref in zip(*grads):
+        torch.testing.assert_close(got, ref, rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("n", [8, 9])
+def test_folded_arc_rule_gives_the_full_rule_sums(n: int) -> None:
+    """On the φ ≥ 0 half of the arc rules (doubled weights, the node φ = 0 once) an integrand even in φ
+    (cosine modes) and one odd in φ (sine modes) have the modes of the full rules."""
+    theta = torch.linspace(0.1, 1.5, 4, dtype=torch.float64).numpy()
+    phi_full, w_full = arc_nodes(theta, theta[:3], n)  # (3, 4, n)
+    phi_half, w_half = fold_arc_rule(phi_full, w_full)
+    assert phi_half.shape == (3, 4, (n + 1) // 2) and bool((phi_half >= 0).all())
+    sums = []
+    for phi_np, w_np in ((phi_full, w_full), (phi_half, w_half)):
+        phi, w = torch.as_tensor(phi_np), torch.as_tensor(w_np)
+        even = torch.stack([w * torch.exp(torch.cos(phi)), w * torch.cos(phi) ** 2])
+        odd = w * torch.sin(phi) * (1.0 + torch.cos(phi))
+        sums.append(ArcFourier.apply(even, odd, phi, 9))
+    for half, full in zip(sums[1], sums[0]):
+        torch.testing.assert_close(half, full, rtol=1e-12, atol=1e-13)
+
+
+def test_kernel_cosine_rule_gives_the_fft_cosine_series() -> None:
+    """For an even function of ψ the half-period matrix product is the cosine series read off the FFT."""
+    n_modes, n_psi = 12, 2 * 12 + 64
+    cos_psi, basis = kernel_cosine_rule(n_modes, n_psi, torch.float64, "cpu")
+    assert cos_psi.shape == (n_psi // 2 + 1,) and basis.shape == (n_psi // 2 + 1, n_modes)
+    z = torch.tensor([[0.5], [7.0], [30.0]], dtype=torch.float64)
+    full = torch.exp(z * torch.cos(torch.arange(n_psi, dtype=torch.float64) * (2.0 * math.pi / n_psi)))  # (3, P)
+    ref = torch.fft.rfft(full, dim=-1).real[:, :n_modes] / n_psi
+    ref[:, 1:] *= 2.0
+    torch.testing.assert_close(torch.exp(z * cos_psi) @ basis, ref, rtol=1e-12, atol=1e-13 * float(ref[:, 0].max()))
 
 
 def _geometry(p: int, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
