@@ -301,6 +301,22 @@ def _kernel_modes(cq_rows: Tensor, sq_rows: Tensor, cq: Tensor, sq: Tensor, cos_
     return torch.matmul(torch.exp(kappa * arg), basis)
 
 
+def _symmetric_rows(parts: list[Tensor]) -> Tensor:
+    """A symmetric (Q, Q, ...) array from its upper blocks: ``parts[k]`` (q_k, Q − r_k, ...) holds rows
+    r_k .. r_k + q_k − 1 from column r_k on (r_k = q_0 + … + q_{k−1}); the columns left of r_k are the
+    transposes of the earlier parts' rows. The kernel's exp(κ(cos θ cos θ' + sin θ sin θ' cos ψ − 1))
+    is symmetric in θ, θ' to the last bit (products commute), so half of it is computed."""
+    starts = [0]
+    for part in parts:
+        starts.append(starts[-1] + part.shape[0])
+    rows = []
+    for k, part in enumerate(parts):
+        r0, r1 = starts[k], starts[k + 1]
+        left = [parts[j][:, r0 - starts[j] : r1 - starts[j]].transpose(0, 1) for j in range(k)]
+        rows.append(torch.cat([*left, part], dim=1))
+    return torch.cat(rows)
+
+
 def build_body_table(
     ior: Tensor,
     alpha: Tensor,
@@ -372,8 +388,8 @@ def build_body_table(
     else:
         cos_psi, basis = kernel_cosine_rule(n_modes, 2 * n_modes + 64, dt, dev)  # (P/2+1,), (P/2+1, M)
         q_rows = max(1, chunk_elements // (n_q * cos_psi.numel()))
-        spec = torch.cat([  # (Q, Q, M), θ rows a few at a time
-            _kernel_modes(cq[q0 : q0 + q_rows], sq[q0 : q0 + q_rows], cq, sq, cos_psi, basis, kappa)
+        spec = _symmetric_rows([  # (Q, Q, M), θ rows a few at a time, each from its diagonal on
+            _kernel_modes(cq[q0 : q0 + q_rows], sq[q0 : q0 + q_rows], cq[q0:], sq[q0:], cos_psi, basis, kappa)
             for q0 in range(0, n_q, q_rows)
         ])
         k_m = spec.permute(2, 0, 1)  # (M,Q,Q): exp(κ(n·n_i−1)) = Σ k_m cos m(φ−φ')
