@@ -17,9 +17,12 @@ Building the table (all torch, so W is differentiable in μ, α, β, κ):
 - polar angles θ of the facets: a composite Gauss–Legendre rule graded to α
   (:mod:`polarshape.brdf.quadrature`); azimuths: Gauss–Legendre on the arc where n·ω > 0, whose
   ends are known in closed form, so the [·]₊ clipping of masking/shadowing is integrated exactly;
+  at κ > 0 the facet side's azimuthal modes (:class:`ArcFourier`) are taken on the φ ≥ 0 half of
+  each arc (:func:`fold_arc_rule`: its integrands are even or odd in φ);
 - the correlation kernel exp(κ(n·n_i − 1)) = Σ_m k_m(θ, θ') cos m(φ − φ') (Fourier series in the
-  azimuth difference; the coefficients are modified Bessel functions, computed by FFT), which
-  turns the 4-D integral into, for each m, a product of small matrices
+  azimuth difference; the coefficients are modified Bessel functions, computed as the cosine
+  series of P samples in ψ, half of them by evenness and half the (θ, θ') pairs by symmetry:
+  :func:`kernel_cosine_rule`), which turns the 4-D integral into, for each m, a product of small matrices
   A_m = H_m(θ_V) · k_m · G_m(θ_L)ᵀ — the route of spec §7 with a Fourier rather than a spherical-
   harmonic expansion. κ = 0 keeps only m = 0 (the separable case);
 - J(θ_V, θ_L, Δφ) = Σ_m A_m cos mΔφ (intensity and s1), Σ_m A_m sin mΔφ (s2).
@@ -228,7 +231,8 @@ def _facet_modes(
 #: α, β, κ themselves. A fit's finite differences in α, β (and κ) on a frozen layout then rebuild
 #: only the cheap rest of the table (bq, the kernel, the products): 60–80 % of a κ = 0 build is
 #: the facet side. Only μ without autograd history is cached, and only sides of at most
-#: :data:`FACET_CACHE_MAX_ELEMENTS` elements (κ = 0: 3·65·Q; large κ layouts are not kept).
+#: :data:`FACET_CACHE_MAX_ELEMENTS` elements (3·M·G·Q: κ = 0 3·65·Q; at G = 65, Q ≤ 156 up to
+#: M = 68 modes, κ ≈ 150 at α ≥ 0.3: the κ 50 layouts, 1.2 M elements = 10 MB, are kept).
 _FACET_CACHE: OrderedDict[tuple, tuple[Tensor, Tensor]] = OrderedDict()
 FACET_CACHE_ENTRIES = 4
 FACET_CACHE_MAX_ELEMENTS = 1 << 21
@@ -294,27 +298,29 @@ def kernel_cosine_rule(n_modes: int, n_psi: int, dtype: torch.dtype, device: tor
 
 def _kernel_modes(cq_rows: Tensor, sq_rows: Tensor, cq: Tensor, sq: Tensor, cos_psi: Tensor, basis: Tensor,
                   kappa: Tensor) -> Tensor:
-    """(q, Q, M) cosine-series coefficients of exp(κ(n·n_i − 1)) in φ − φ' for the facet rows (q,)
-    against all nodes (Q,), from the half-period azimuths cos ψ (P/2 + 1,) and the matrix ``basis``
-    (P/2 + 1, M) of :func:`kernel_cosine_rule` (the kernel is even in ψ)."""
+    """(M, q, Q) cosine-series coefficients of exp(κ(n·n_i − 1)) in φ − φ' for the facet rows (q,)
+    against the nodes (Q,), from the half-period azimuths cos ψ (P/2 + 1,) and the matrix ``basis``
+    (P/2 + 1, M) of :func:`kernel_cosine_rule` (the kernel is even in ψ); modes first, the layout of
+    the products that use them."""
     arg = (cq_rows[:, None] * cq[None, :] - 1.0).unsqueeze(-1) + (sq_rows[:, None] * sq[None, :]).unsqueeze(-1) * cos_psi
-    return torch.matmul(torch.exp(kappa * arg), basis)
+    samples = torch.exp(kappa * arg).reshape(-1, cos_psi.numel())  # (q·Q, P/2 + 1)
+    return torch.matmul(basis.t(), samples.t()).reshape(basis.shape[1], cq_rows.numel(), cq.numel())
 
 
 def _symmetric_rows(parts: list[Tensor]) -> Tensor:
-    """A symmetric (Q, Q, ...) array from its upper blocks: ``parts[k]`` (q_k, Q − r_k, ...) holds rows
+    """A symmetric (..., Q, Q) array from its upper blocks: ``parts[k]`` (..., q_k, Q − r_k) holds rows
     r_k .. r_k + q_k − 1 from column r_k on (r_k = q_0 + … + q_{k−1}); the columns left of r_k are the
     transposes of the earlier parts' rows. The kernel's exp(κ(cos θ cos θ' + sin θ sin θ' cos ψ − 1))
     is symmetric in θ, θ' to the last bit (products commute), so half of it is computed."""
     starts = [0]
     for part in parts:
-        starts.append(starts[-1] + part.shape[0])
+        starts.append(starts[-1] + part.shape[-2])
     rows = []
     for k, part in enumerate(parts):
         r0, r1 = starts[k], starts[k + 1]
-        left = [parts[j][:, r0 - starts[j] : r1 - starts[j]].transpose(0, 1) for j in range(k)]
-        rows.append(torch.cat([*left, part], dim=1))
-    return torch.cat(rows)
+        left = [parts[j][..., r0 - starts[j] : r1 - starts[j]].transpose(-1, -2) for j in range(k)]
+        rows.append(torch.cat([*left, part], dim=-1))
+    return torch.cat(rows, dim=-2)
 
 
 def build_body_table(
@@ -388,11 +394,10 @@ def build_body_table(
     else:
         cos_psi, basis = kernel_cosine_rule(n_modes, 2 * n_modes + 64, dt, dev)  # (P/2+1,), (P/2+1, M)
         q_rows = max(1, chunk_elements // (n_q * cos_psi.numel()))
-        spec = _symmetric_rows([  # (Q, Q, M), θ rows a few at a time, each from its diagonal on
+        k_m = _symmetric_rows([  # (M,Q,Q): exp(κ(n·n_i−1)) = Σ k_m cos m(φ−φ'); θ rows a few at a time,
             _kernel_modes(cq[q0 : q0 + q_rows], sq[q0 : q0 + q_rows], cq[q0:], sq[q0:], cos_psi, basis, kappa)
-            for q0 in range(0, n_q, q_rows)
+            for q0 in range(0, n_q, q_rows)  # each from its diagonal on
         ])
-        k_m = spec.permute(2, 0, 1)  # (M,Q,Q): exp(κ(n·n_i−1)) = Σ k_m cos m(φ−φ')
     z = 2.0 * math.pi * (bq[:, None] * k_m[0]).sum(0)  # Z(θ') of eq. 20   (Q,)
     g_modes = h_modes[0] / z  # entry side: [n_i·L]₊ D T+(θ_i) / Z   (M, G, Q)
     inner = torch.matmul(k_m, g_modes.transpose(1, 2))  # (M, Q, G)
