@@ -273,7 +273,9 @@ def _facet_side(key: tuple, sq: Tensor, cq: Tensor, tg: Tensor, phi_np: np.ndarr
     return side
 
 
-def kernel_cosine_rule(n_modes: int, n_psi: int, dtype: torch.dtype, device: torch.device | str) -> tuple[Tensor, Tensor]:
+def kernel_cosine_rule(
+    n_modes: int, n_psi: int, dtype: torch.dtype, device: torch.device | str
+) -> tuple[Tensor, Tensor]:
     """The half-period samples and cosine-series matrix of :func:`_kernel_modes`.
 
     A function f(ψ) even in ψ, sampled at ψ_k = 2πk/P (k = 0..P−1, P even), has the cosine series

@@ -54,7 +54,9 @@ def _arc_inputs(shape: tuple[int, ...], n: int, seed: int = 0) -> tuple[torch.Te
     return torch.randn(2, *shape, n, generator=gen, dtype=f64), torch.randn(*shape, n, generator=gen, dtype=f64), phi
 
 
-def _direct_modes(h_even: torch.Tensor, h_odd: torch.Tensor, phi: torch.Tensor, n_modes: int) -> tuple[torch.Tensor, ...]:
+def _direct_modes(
+    h_even: torch.Tensor, h_odd: torch.Tensor, phi: torch.Tensor, n_modes: int
+) -> tuple[torch.Tensor, ...]:
     """The sums of ArcFourier written out with one (..., n, M) tensor of cos mφ, sin mφ."""
     angle = phi.unsqueeze(-1) * torch.arange(n_modes, dtype=phi.dtype)  # (..., n, M)
     even = (h_even.unsqueeze(-1) * torch.cos(angle)).sum(-2).movedim(-1, 1)  # (2, M, ...)
@@ -82,7 +84,8 @@ def test_arc_fourier_backward_is_the_transposed_product() -> None:
     h_odd.requires_grad_(True)
     assert torch.autograd.gradcheck(lambda e, o: ArcFourier.apply(e, o, phi, 7), (h_even, h_odd))
     gen = torch.Generator().manual_seed(2)
-    w_even, w_odd = torch.randn(2, 7, 2, 3, generator=gen, dtype=torch.float64), torch.randn(7, 2, 3, generator=gen, dtype=torch.float64)
+    w_even = torch.randn(2, 7, 2, 3, generator=gen, dtype=torch.float64)
+    w_odd = torch.randn(7, 2, 3, generator=gen, dtype=torch.float64)
     grads = []
     for fn in (ArcFourier.apply, _direct_modes):
         even, odd = fn(h_even, h_odd, phi, 7)
