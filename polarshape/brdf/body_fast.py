@@ -238,11 +238,20 @@ FACET_CACHE_ENTRIES = 4
 FACET_CACHE_MAX_ELEMENTS = 1 << 21
 
 
+#: The correlation kernels k_m (M, Q, Q) of the last few κ > 0 builds (:func:`_kernel_side`), by κ's
+#: value and what places the θ nodes: a fit's finite differences in μ, α, β leave κ, and so the kernel,
+#: unchanged (at κ 100 it is half of such a build). Only κ without autograd history is cached, and
+#: only kernels of at most :data:`FACET_CACHE_MAX_ELEMENTS` elements (κ 100, α 0.3: 56·156² = 1.4 M).
+_KERNEL_CACHE: OrderedDict[tuple, Tensor] = OrderedDict()
+KERNEL_CACHE_ENTRIES = 2
+
+
 def clear_facet_cache() -> int:
-    """Empty the facet-side cache of :func:`build_body_table` (its memory back; the tables do not
-    change); returns how many entries it held."""
-    n = len(_FACET_CACHE)
+    """Empty the facet-side and kernel caches of :func:`build_body_table` (their memory back; the
+    tables do not change); returns how many entries they held."""
+    n = len(_FACET_CACHE) + len(_KERNEL_CACHE)
     _FACET_CACHE.clear()
+    _KERNEL_CACHE.clear()
     return n
 
 
@@ -325,6 +334,28 @@ def _symmetric_rows(parts: list[Tensor]) -> Tensor:
     return torch.cat(rows, dim=-2)
 
 
+def _kernel_side(key: tuple, cq: Tensor, sq: Tensor, kappa: Tensor, n_modes: int, chunk_elements: int) -> Tensor:
+    """(M, Q, Q) modes of the correlation kernel, exp(κ(n·n_i−1)) = Σ k_m cos m(φ−φ'), θ rows a few at a
+    time (each from its diagonal on: :func:`_symmetric_rows`); from :data:`_KERNEL_CACHE` when it has
+    ``key`` and κ carries no autograd history."""
+    cacheable = not kappa.requires_grad
+    if cacheable and key in _KERNEL_CACHE:
+        _KERNEL_CACHE.move_to_end(key)
+        return _KERNEL_CACHE[key]
+    cos_psi, basis = kernel_cosine_rule(n_modes, 2 * n_modes + 64, cq.dtype, cq.device)  # (P/2+1,), (P/2+1, M)
+    n_q = cq.numel()
+    q_rows = max(1, chunk_elements // (n_q * cos_psi.numel()))
+    k_m = _symmetric_rows([
+        _kernel_modes(cq[q0 : q0 + q_rows], sq[q0 : q0 + q_rows], cq[q0:], sq[q0:], cos_psi, basis, kappa)
+        for q0 in range(0, n_q, q_rows)
+    ])
+    if cacheable and k_m.numel() <= FACET_CACHE_MAX_ELEMENTS:
+        _KERNEL_CACHE[key] = k_m
+        while len(_KERNEL_CACHE) > KERNEL_CACHE_ENTRIES:
+            _KERNEL_CACHE.popitem(last=False)
+    return k_m
+
+
 def build_body_table(
     ior: Tensor,
     alpha: Tensor,
@@ -394,12 +425,8 @@ def build_body_table(
     if n_modes == 1:
         k_m = torch.ones(1, n_q, n_q, dtype=dt, device=dev)
     else:
-        cos_psi, basis = kernel_cosine_rule(n_modes, 2 * n_modes + 64, dt, dev)  # (P/2+1,), (P/2+1, M)
-        q_rows = max(1, chunk_elements // (n_q * cos_psi.numel()))
-        k_m = _symmetric_rows([  # (M,Q,Q): exp(κ(n·n_i−1)) = Σ k_m cos m(φ−φ'); θ rows a few at a time,
-            _kernel_modes(cq[q0 : q0 + q_rows], sq[q0 : q0 + q_rows], cq[q0:], sq[q0:], cos_psi, basis, kappa)
-            for q0 in range(0, n_q, q_rows)  # each from its diagonal on
-        ])
+        kernel_key = (float(kappa.detach()), a, b, n_theta, max_width, n_modes, chunk_elements, dt, str(dev))
+        k_m = _kernel_side(kernel_key, cq, sq, kappa, n_modes, chunk_elements)  # (M, Q, Q)
     z = 2.0 * math.pi * (bq[:, None] * k_m[0]).sum(0)  # Z(θ') of eq. 20   (Q,)
     g_modes = h_modes[0] / z  # entry side: [n_i·L]₊ D T+(θ_i) / Z   (M, G, Q)
     inner = torch.matmul(k_m, g_modes.transpose(1, 2))  # (M, Q, G)

@@ -46,6 +46,21 @@ def test_body_table_gradient_does_not_depend_on_the_chunk_size() -> None:
     torch.testing.assert_close(grads[1], grads[0], rtol=1e-12, atol=0.0)
 
 
+def test_cached_kernel_leaves_the_kappa_gradient() -> None:
+    """A build at κ fills the kernel cache; a build whose κ requires grad is not served from it: its
+    ∂/∂κ is that of a build from empty caches."""
+    grads = []
+    for warm in (False, True):
+        clear_facet_cache()
+        if warm:
+            build_body_table(*_material(20.0), n_grid=5, n_dphi=9, n_theta=3, max_width=0.3)
+        mu, a, b, k, c = _material(20.0, requires_grad=True)
+        build_body_table(mu, a, b, k, c, n_grid=5, n_dphi=9, n_theta=3, max_width=0.3).values.sum().backward()
+        grads.append(k.grad)
+    assert grads[0] is not None and float(grads[0].abs()) > 0.0
+    torch.testing.assert_close(grads[1], grads[0], rtol=0.0, atol=0.0)
+
+
 def _arc_inputs(shape: tuple[int, ...], n: int, seed: int = 0) -> tuple[torch.Tensor, ...]:
     """Random h_even (2, *shape, n), h_odd (*shape, n) and angles φ (*shape, n) in (−π, π)."""
     gen = torch.Generator().manual_seed(seed)
