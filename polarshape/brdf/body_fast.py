@@ -242,7 +242,7 @@ def _mirrored(half: Tensor, odd: int) -> Tensor:
 #: α, β themselves. A μ change on a frozen layout (a fit's μ difference; the next iteration's
 #: differences at an accepted trial point) then costs Fresnel on the distinct exit angles and two
 #: weighted sums. Constants only (no autograd history), so kept whether or not μ requires grad;
-#: ≈ 2.5·G·Q·n elements (κ = 0: 3–6 MB in float64) and at most
+#: ≈ 2.5·G·Q·n elements (κ = 0: 4–7 MB in float64) and at most
 #: :data:`FACET_CACHE_MAX_ELEMENTS` each. Emptied by :func:`clear_facet_cache`.
 _GEOMETRY_CACHE: OrderedDict[tuple, _SeparableGeometry] = OrderedDict()
 GEOMETRY_CACHE_ENTRIES = 4
