@@ -517,7 +517,8 @@ def nested_kappa(start: JointResult, obs: Observations, *, fresh_max_iter: int =
             the second start unnecessary. corner_ratio: how far (a factor in α or β) the κ = 0 solve must have
             moved from its start for the second start. decide_gain: the gain a caller's decision needs; the
             solve from the optimum, and the second start, stop once their gain over the κ = 0 optimum
-            clearly ends below it (:func:`_clearly_below`: a test, not a fit). kwargs: :func:`joint_solve`'s keywords (``names`` gets ``kappa`` added).
+            clearly ends below it (:func:`_clearly_below`: a test, not a fit). kwargs: :func:`joint_solve`'s
+            keywords (``names`` gets ``kappa`` added).
 
     Returns:
         The κ solve (its ``initial_loss`` and ``initial_pixel_loss``: the κ = 0 optimum's, on the κ
