@@ -347,8 +347,10 @@ KAPPA_TEST_GRID = 33
 KAPPA_JAC_GRID = 17
 #: A kept κ's polish on full tables ends once an iteration changed the loss by < KAPPA_POLISH_TOL
 #: (the alternation's own convergence test, 0.1 %) and by < KAPPA_POLISH_RATE × the change before
-#: (a fast rate: the rest of the descent is ≤ 1.1e-4 of the loss), else at 1e-5 as before; its last
-#: full-table iterations moved κ by < 0.2 % on the 256² κ 50 spheres and cost 1–1.5 s each.
+#: (a fast rate: the rest of the descent is ≤ 1.1e-4 of the loss), or once its first iteration changed it
+#: by < KAPPA_POLISH_RATE × KAPPA_POLISH_TOL (the test had settled on its tables: 256² α 0.3 κ 50, 2e-5),
+#: else at 1e-5 as before; its last full-table iterations moved κ by < 0.2 % on the 256² κ 50 spheres and
+#: cost 1–1.5 s each.
 KAPPA_POLISH_TOL = 1e-3
 KAPPA_POLISH_RATE = 0.1
 
@@ -372,8 +374,8 @@ def _kappa_decision(fit: JointResult, obs_sub: Observations, names: tuple[str, .
     floor = loss_floor(float(kwargs["delta"]))  # type: ignore[arg-type]
     floor_sum = floor * float(obs_sub.weight.sum())  # the same floor for sums of per-pixel losses
     # the test on coarse tables (κ tables cost 0.1–0.6 s a build), to a tenth of the decision's 1 % (tol
-    # 1e-3: κ-free data stop after one iteration), stopped once its gain clearly ends below
-    # KAPPA_KEEP_GAIN; a kept κ is polished on full tables (KAPPA_POLISH_TOL)
+    # 1e-3: κ-free data stop after one iteration), each of its starts stopped once its gain over the κ = 0
+    # optimum clearly ends below KAPPA_KEEP_GAIN; a kept κ is polished on full tables (KAPPA_POLISH_TOL)
     trial, gain = nested_kappa(fit, obs_sub, names=names, decide_gain=KAPPA_KEEP_GAIN,
                                **{**kwargs, "n_grid": KAPPA_TEST_GRID, "jac_grid": KAPPA_JAC_GRID, "tol": 1e-3})
     _joint_record(trial, level, "joint_kappa", log)
