@@ -359,7 +359,7 @@ def _extrapolate(lv: _Level, previous: tuple[Tensor, FMBRDFParams], direction: l
             normals = unit(lv.n + t * (lv.n - n_prev))
             facing = (normals * lv.obs.view).sum(-1) > 0
             normals = torch.where(facing.unsqueeze(-1), normals, lv.n)
-            problem = _level_problem(lv, trial, options, polarised, tables)  # a step taken: the next step's tables
+            problem = _level_problem(lv, trial, options, polarised, tables)  # if taken: the next normal step's
             with torch.no_grad():
                 r, k_b = problem.residual(normals, lv.obs)
                 trial_pp = problem.loss(r)
