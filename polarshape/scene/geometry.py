@@ -15,6 +15,7 @@ surface in the input precision, so their hit points and normals are analytic, no
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 from abc import ABC, abstractmethod
@@ -266,7 +267,6 @@ class MeshShape(Shape):
         lo, hi = mesh.bounds
         self.center = tuple(float(v) for v in 0.5 * (lo + hi))
         self.bounding_radius = float(np.linalg.norm(mesh.vertices - np.asarray(self.center), axis=1).max())
-        self._caster = _Open3DRaycaster(mesh.vertices, mesh.faces)
         self._faces = np.asarray(mesh.faces, dtype=np.int64)
         self._face_normals = np.asarray(mesh.face_normals, dtype=np.float64)
         self._vertex_normals = np.asarray(mesh.vertex_normals, dtype=np.float64)
@@ -294,6 +294,12 @@ class MeshShape(Shape):
         transform[:3, 3] = _as_vec3(translation, "translation")
         mesh.apply_transform(transform)
         return cls(mesh, smooth=smooth)
+
+    @functools.cached_property
+    def _caster(self) -> _Open3DRaycaster:
+        # built at the first ray cast, not here: a shape whose rays are never cast (the convex test of
+        # polarshape.surface.interreflection) pays neither the scene nor open3d's import
+        return _Open3DRaycaster(self.mesh.vertices, self.mesh.faces)
 
     def _normals_at(self, prim: np.ndarray, uvs: np.ndarray) -> np.ndarray:
         if not self.smooth:
