@@ -30,7 +30,6 @@ from dataclasses import dataclass, replace
 import numpy as np
 import torch
 import torch.nn.functional as F
-from scipy.spatial import cKDTree
 from torch import Tensor
 
 from polarshape.cameras import Camera, OrthographicCamera
@@ -288,6 +287,8 @@ def estimate_one_bounce(normals: Tensor, albedo: Tensor, depth: np.ndarray, came
         logger.info("interreflection: no ray of %d pixels (stride %d, %d rays each) meets the surface",
                     int(on.sum()), stride, samples)
         return BounceEstimate(out, stride, 0.0)
+    from scipy.spatial import cKDTree  # only when rays met the surface
+
     # every hit takes the body albedo of the surface point of the mesh's grid nearest to it
     k_b = to_numpy(albedo).astype(np.float64)
     _, nearest = cKDTree(points[grid][surface[grid]]).query(to_numpy(bounce.hits.points)[hit])
