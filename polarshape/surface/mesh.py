@@ -23,19 +23,17 @@ from __future__ import annotations
 import logging
 import os
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Literal
+from typing import Any, Literal
 
 import numpy as np
 import torch
+import trimesh
 from numpy.typing import NDArray
 
 from polarshape.cameras import Camera
 from polarshape.checks import to_numpy
 from polarshape.io.atomic import atomic_write_bytes
 from polarshape.io.tables import table_text
-
-if TYPE_CHECKING:  # trimesh (~1 s to import, networkx with it) is imported where a mesh is made or written
-    import trimesh
 
 logger = logging.getLogger(__name__)
 
@@ -135,7 +133,6 @@ def depth_to_mesh(
         trimesh.Trimesh (not processed: vertex i is the i-th valid pixel in raster order), faces wound
         so that their normals face the camera, vertex normals set, vertex colours if given.
     """
-    import trimesh
     points = camera.unproject(depth)  # (H, W, 3)
     view = to_numpy(camera.view_directions(torch.from_numpy(points)))  # (H, W, 3) unit, surface → camera
     z = points[..., 2]
@@ -256,7 +253,6 @@ def poisson_mesh(
         >>> mesh_file_checks(write_mesh(mesh, "mesh_poisson.ply"))["self_intersecting"]  # doctest: +SKIP
         False
     """
-    import trimesh
     import open3d as o3d
 
     p = to_numpy(points).astype(np.float64)
@@ -413,7 +409,6 @@ def _rotation(frame: str) -> NDArray[np.float64]:
 def mesh_in_frame(mesh: trimesh.Trimesh, frame: MeshFrame) -> trimesh.Trimesh:
     """A copy of a camera-frame mesh in ``frame`` (:data:`MESH_FRAMES`): vertices and vertex normals
     rotated by R, faces and colours unchanged (R is proper, so the faces keep facing the camera)."""
-    import trimesh
     rotation = _rotation(frame)
     colors = mesh.visual.vertex_colors if mesh.visual.kind == "vertex" else None
     return trimesh.Trimesh(
@@ -440,7 +435,6 @@ def _obj_bytes(mesh: trimesh.Trimesh) -> bytes:
     (1-based), floats with 8 decimals. A mesh this does not cover the same way (no faces, face colours, a name in
     its metadata) goes through trimesh.
     """
-    import trimesh
     kind = mesh.visual.kind
     if len(mesh.faces) == 0 or kind not in (None, "vertex") or "name" in mesh.metadata:
         text = trimesh.exchange.obj.export_obj(mesh, include_normals=True, include_color=True, include_texture=False)
@@ -497,7 +491,6 @@ def write_mesh(
             comment polarshape frame: opengl: x right, y up, z toward the viewer (...); from the camera frame
             by diag(1, -1, -1)   (one line in the file)
     """
-    import trimesh
     path = Path(path)
     suffix = path.suffix.lower()
     out = mesh_in_frame(mesh, frame)
