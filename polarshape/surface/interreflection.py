@@ -102,6 +102,7 @@ class _Tiles:
     every vertex of a tile is c + a m + b with b ⊥ m, |a| ≤ δ, |b| ≤ ρ."""
 
     slabs: Tensor  # (8, T): c (3), unit m (3), δ, ρ
+    witness: Tensor  # (3, T) the tile's vertex nearest c (0 for an empty tile)
     occupied: Tensor  # (T,) bool: the tile holds a vertex
     width: int  # tiles per row
 
@@ -127,7 +128,10 @@ def _tiles(vertices: Tensor, vertex_normals: Tensor, size: int) -> _Tiles:
     lateral = (d - a[..., None] * axis[:, None]).norm(dim=-1)  # (T, s²)
     thickness = torch.where(valid, a.abs(), 0.0).amax(1, keepdim=True)  # (T, 1)
     radius = torch.where(valid, lateral, 0.0).amax(1, keepdim=True)  # (T, 1)
-    return _Tiles(torch.cat([centre, axis, thickness, radius], dim=1).T.contiguous(), count > 0, width)
+    nearest = torch.where(valid, d.norm(dim=-1), math.inf).argmin(1)  # (T,)
+    witness = v[torch.arange(v.shape[0], device=v.device), nearest]  # (T, 3)
+    return _Tiles(torch.cat([centre, axis, thickness, radius], dim=1).T.contiguous(), witness.T.contiguous(),
+                  count > 0, width)
 
 
 def _slab_bound(rays: Tensor, slabs: Tensor, *, dense: bool = False) -> Tensor:
@@ -212,12 +216,15 @@ def surface_below_tangent_planes(vertices: Tensor, vertex_normals: Tensor, point
         return True
 
     first = tiles[0].occupied.nonzero().squeeze(1)  # (T0,)
-    slabs = tiles[0].slabs[:, first]  # (8, T0)
-    step = max(1, _PAIRS_CHUNK // max(first.numel(), 1))
-    for start in range(0, points.shape[0], step):  # every point against every top tile, as (C, T0) blocks
-        open_ = _slab_bound(rays[:, start:start + step], slabs, dense=True) >= 0  # (C, T0)
+    slabs, witness = tiles[0].slabs[:, first], tiles[0].witness[:, first]  # (8, T0), (3, T0)
+    blocks = -(-points.shape[0] * first.numel() // _PAIRS_CHUNK)  # every point against every top tile, in blocks
+    for block in range(blocks):  # of every blocks-th point: each spans the surface, the first finds a concavity
+        among = torch.arange(block, points.shape[0], blocks, device=vertices.device)  # (C,)
+        if bool((rays[:3, among].T @ witness >= rays[3, among, None]).any()):  # a vertex above: found at once
+            return False
+        open_ = _slab_bound(rays[:, among], slabs, dense=True) >= 0  # (C, T0)
         i, t = open_.nonzero().unbind(1)
-        if not cleared(1, *split(0, i + start, first[t])):
+        if not cleared(1, *split(0, among[i], first[t])):
             return False
     return True
 
