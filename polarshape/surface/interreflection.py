@@ -46,8 +46,8 @@ logger = logging.getLogger(__name__)
 
 __all__ = ["BounceEstimate", "estimate_one_bounce", "surface_below_tangent_planes"]
 
-#: the tiles of :func:`surface_below_tangent_planes`, vertices per side: every point against every tile of
-#: the first size, then only the tiles not cleared, split in four
+#: the tiles of :func:`surface_below_tangent_planes`, vertices per side, each size half the one before: every
+#: point against every tile of the first size, then only the tiles not cleared, split in four
 _TILE_SIZES = (16, 8, 4, 2, 1)
 #: (point, tile) pairs bounded at once by :func:`surface_below_tangent_planes` (memory ∝ this)
 _PAIRS_CHUNK = 1 << 18
@@ -165,7 +165,8 @@ def surface_below_tangent_planes(vertices: Tensor, vertex_normals: Tensor, point
     vertices v = c + a m + b (b ⊥ m, |a| ≤ δ, |b| ≤ ρ; m the tile's mean normal, though any unit vector
     would do), n̂·(v − p) ≤ n̂·(c − p) + |n̂·m| δ + |n̂ − (n̂·m) m| ρ. A tile whose bound is below the
     threshold is cleared with all its vertices; the others are split into their four sub-tiles, and on
-    single vertices (δ = ρ = 0) the bound is the value itself.
+    single vertices (δ = ρ = 0) the bound is the value itself. The vertex nearest each top tile's centre is
+    checked exactly first: on a concave surface one of them is usually above some point's plane.
 
     Args:
         vertices: (Hm, Wm, 3) the mesh's vertices on its grid (a superset does too), NaN where none.
@@ -280,6 +281,8 @@ def estimate_one_bounce(normals: Tensor, albedo: Tensor, depth: np.ndarray, came
         normals=as_t(np.where(on[..., None], n_np[rows, cols], 0.0)),
         view=as_t(to_numpy(view)[rows, cols]),
     )
+    # the rays' start-off is the shape's (hemisphere_hits); the mesh's vertices are points[grid] on surface[grid]
+    # (up to the decimated camera's float64 rounding, far inside the test's margin)
     shape = scene.shapes[0]
     if surface_below_tangent_planes(as_t(np.where(surface[grid][..., None], points[grid], np.nan)), as_t(n_np[grid]),
                                     g.points[on], g.normals[on], shape.surface_error_rel * shape.bounding_radius):
