@@ -71,7 +71,8 @@ def test_convex_surface_casts_no_ray(monkeypatch: pytest.MonkeyPatch) -> None:
 
 
 def _grid_points(depth: np.ndarray, normals: torch.Tensor, camera, stride: int):  # noqa: ANN001, ANN202
-    """The vertex grid (H, W, 3) and the lattice's points and normals (P, 3) of a depth map, as the estimator forms them."""
+    """The vertex grid (H, W, 3) and the lattice's points and normals (P, 3) of a depth map, as the estimator
+    forms them."""
     points = torch.as_tensor(camera.unproject(depth))  # (H, W, 3)
     on = torch.isfinite(points).all(-1) & torch.isfinite(normals).all(-1)
     lattice = (slice(stride // 2, None, stride),) * 2
@@ -113,10 +114,9 @@ def test_tangent_plane_test_is_exact(stride: int) -> None:
     vertices, points, lattice_normals = _grid_points(depth - 1.9, noisy, camera, stride)  # near the origin
     highest = _heights(vertices, points, lattice_normals)
     assert highest > 1e-4  # the bumps lift vertices above their neighbours' planes
-    length = lattice_normals.norm(dim=-1).min()  # the rays start offset · |n| above the tangent plane
-    assert surface_below_tangent_planes(vertices, noisy, points, lattice_normals, offset=1.05 * highest / float(length))
-    length = lattice_normals.norm(dim=-1).max()
-    assert not surface_below_tangent_planes(vertices, noisy, points, lattice_normals, offset=0.95 * highest / float(length))
+    shortest, longest = (float(x) for x in lattice_normals.norm(dim=-1).aminmax())  # rays start offset · |n| above
+    assert surface_below_tangent_planes(vertices, noisy, points, lattice_normals, offset=1.05 * highest / shortest)
+    assert not surface_below_tangent_planes(vertices, noisy, points, lattice_normals, offset=0.95 * highest / longest)
 
 
 def test_coarse_mesh_keeps_the_bounce_in_a_dish() -> None:
