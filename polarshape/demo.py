@@ -16,7 +16,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 import torch
-from matplotlib import colormaps
 
 from polarshape.brdf import FMBRDFParams, fmbrdf_stokes
 from polarshape.imaging.mosaic import MosaicLayout, mosaic_from_stokes
@@ -68,6 +67,7 @@ def render_demo(
 
 
 def _colour(values: np.ndarray, mask: np.ndarray, cmap: str, vmin: float, vmax: float) -> np.ndarray:
+    from matplotlib import colormaps  # ~0.3 s to import: only when a map is coloured
     rgb = colormaps[cmap]((np.clip(values, vmin, vmax) - vmin) / (vmax - vmin))[..., :3]
     rgb[~mask] = 0.0
     return cv2.cvtColor((rgb * 255).round().astype(np.uint8), cv2.COLOR_RGB2BGR)

@@ -47,7 +47,6 @@ from typing import Any
 
 import numpy as np
 import torch
-from matplotlib.figure import Figure
 
 from polarshape import __version__
 from polarshape.acquisition.calibrate import Intrinsics, fit_sphere, sphere_mask_from_image
@@ -376,6 +375,7 @@ def _binned(x: np.ndarray, y: np.ndarray, edges: np.ndarray) -> np.ndarray:
 def _plot_curves(folder: Path, normals: torch.Tensor, obs: Observations, fits: dict[str, ModelFit]) -> list[str]:
     """intensity_curve.png (s0 vs θ_H) and dolp_curve.png (DoLP vs θ_V): observed points and binned
     medians, each model's fitted values' binned medians."""
+    from matplotlib.figure import Figure  # ~0.7 s to import: only when a plot is drawn
     valid = (obs.weight > 0).numpy()
     th_h, th_v = _curve_angles(normals, obs)
     observed = obs.stokes
@@ -406,6 +406,7 @@ def _plot_curves(folder: Path, normals: torch.Tensor, obs: Observations, fits: d
 
 
 def _plot_held_out(folder: Path, held_out: dict[str, HeldOutErrors]) -> str:
+    from matplotlib.figure import Figure
     fig = Figure(figsize=(6.4, 3.6))
     ax = fig.add_subplot()
     names = list(held_out)

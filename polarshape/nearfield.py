@@ -58,7 +58,6 @@ from dataclasses import dataclass, field
 from typing import Any, Literal
 
 import numpy as np
-import scipy.optimize
 import torch
 from pydantic import BaseModel, ConfigDict, Field
 from torch import Tensor
@@ -492,6 +491,7 @@ def estimate_depth_placement(
     Returns:
         (median depth, relative residual there).
     """
+    import scipy.optimize  # its only use here; ~0.6 s to import
     pixels = _search_pixels(np.isfinite(shape) & to_numpy(inputs.mask).astype(bool))
     pix_t = torch.from_numpy(pixels).to(inputs.stokes.device)
     s0 = inputs.stokes[:, 0][:, pix_t].to(torch.float64)  # (K, P)

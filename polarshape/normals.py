@@ -39,16 +39,15 @@ import torch
 from torch import Tensor
 
 from polarshape.brdf.baselines import lambertian_stokes
-from polarshape.brdf.fmbrdf import build_tables
 from polarshape.brdf.params import FMBRDF_PARAM_NAMES, FMBRDFParams
 from polarshape.checks import wait_for_device
 from polarshape.errors import CaptureError
 from polarshape.imaging.stokes import dolp
 from polarshape.io.capture import Capture
 from polarshape.io.material import load_material
-from polarshape.recover.coarse_to_fine import FMBRDFState, KnownMaterial, SolveLog
+from polarshape.recover.coarse_to_fine import FMBRDFState, KnownMaterial, SolveLog, TableCache
 from polarshape.recover.colour import colour_albedo
-from polarshape.recover.materials import MaterialsState, region_inputs, solve_materials
+from polarshape.recover.materials import MaterialsState, material_tables, region_inputs, solve_materials
 from polarshape.recover.normal_solver import CHUNK_PIXELS
 from polarshape.recover.observations import RecoveryInputs, crop_inputs, flatten_observations, paste_crop
 from polarshape.recover.options import InitialNormalsOptions, RecoveryOptions
@@ -236,18 +235,19 @@ def _lambertian_solution(inputs: RecoveryInputs, ps: RobustPSResult, log: SolveL
     return _Solution(normals, albedo, rendered, params, filled)
 
 
-def _render_fmbrdf(inputs: RecoveryInputs, state: FMBRDFState) -> Tensor:
-    """(K, 3, H, W) Stokes rendered with the recovered normals, parameters and albedo (0 outside the mask)."""
+def _render_fmbrdf(inputs: RecoveryInputs, state: FMBRDFState, tables: TableCache | None = None) -> Tensor:
+    """(K, 3, H, W) Stokes rendered with the recovered normals, parameters and albedo (0 outside the mask);
+    the material's tables from the run's ``tables`` (the solve built them) when given."""
     pixels = inputs.mask
     obs = flatten_observations(inputs, pixels)
     p = state.params
     normals, k_b = state.normals[pixels], state.k_b[pixels]  # (P, 3), (P,)
     parts = []
     with torch.no_grad():
-        tables = build_tables(ior=p.ior, alpha=p.alpha, beta=p.beta, kappa=p.kappa, device=inputs.stokes.device)
+        built = material_tables(p, inputs.stokes.device, tables)
         for start in range(0, normals.shape[0], CHUNK_PIXELS):  # (P, K, 3) temporaries of a chunk only
             idx = torch.arange(start, min(start + CHUNK_PIXELS, normals.shape[0]), device=normals.device)
-            surf, body = render_parts(tables, normals[idx], obs.select(idx))
+            surf, body = render_parts(built, normals[idx], obs.select(idx))
             parts.append(p.k_s * surf + k_b[idx][:, None, None] * body)  # (chunk, K, 3)
         s = torch.cat(parts) if parts else normals.new_zeros((0, obs.stokes.shape[1], 3))  # (P, K, 3)
     h, w = inputs.shape
@@ -273,7 +273,9 @@ def _fmbrdf_solution(inputs: RecoveryInputs, ps: RobustPSResult, options: Recove
     if not inputs.has_polarisation:
         log.skipped.append("polarisation: no linear polarisation above the noise (no polariser or an unpolarised "
                            "scene): intensity-only fit")
-    several = solve_materials(inputs, ps.normals, options, seed=seed, progress=progress, log=log, material=material)
+    tables = TableCache()  # the run's tables: the solve's final material's are the render's
+    several = solve_materials(inputs, ps.normals, options, seed=seed, progress=progress, log=log, material=material,
+                              tables=tables)
     normals, k_b, filled = _fill(inputs, several.normals, several.k_b, log)
     if not bool(filled.any()):
         normals, k_b = several.normals, several.k_b
@@ -292,9 +294,10 @@ def _fmbrdf_solution(inputs: RecoveryInputs, ps: RobustPSResult, options: Recove
         log.skipped.append("smoothness: 0, per-pixel maximum-likelihood normals (no spatial prior)")
     t0 = time.perf_counter()
     if one:
-        rendered = _render_fmbrdf(inputs, FMBRDFState(several.params[0], normals, k_b))
+        rendered = _render_fmbrdf(inputs, FMBRDFState(several.params[0], normals, k_b), tables)
     else:  # each material renders its own pixels (zeros elsewhere)
-        rendered = torch.stack([_render_fmbrdf(region_inputs(inputs, several.labels == m), several.material_state(m))
+        rendered = torch.stack([_render_fmbrdf(region_inputs(inputs, several.labels == m), several.material_state(m),
+                                               tables)
                                 for m in range(len(several.params))]).sum(0)
     log.add_time("render", t0)
     if not options.per_pixel_albedo:

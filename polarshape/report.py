@@ -36,13 +36,10 @@ import textwrap
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 import torch
-from matplotlib.axes import Axes
-from matplotlib.figure import Figure
-from matplotlib.image import AxesImage
 
 from polarshape.brdf.params import FMBRDF_PARAM_NAMES, FMBRDFParams
 from polarshape.checks import to_numpy
@@ -52,6 +49,11 @@ from polarshape.io.atomic import atomic_path, atomic_write_text
 from polarshape.io.material import MATERIAL_UNITS, MaterialError, load_material
 from polarshape.io.results import MATERIAL_COLOURS
 from polarshape.scene.sensor import SensorModel
+
+if TYPE_CHECKING:  # matplotlib (~0.7 s with fontTools) is imported where a figure is drawn
+    from matplotlib.axes import Axes
+    from matplotlib.figure import Figure
+    from matplotlib.image import AxesImage
 
 logger = logging.getLogger(__name__)
 
@@ -893,6 +895,7 @@ def _figure(ncols: int, nrows: int = 1, size: float = 3.6, margins: dict[str, fl
             ) -> tuple[Figure, list[Axes]]:
     """A figure of ``nrows`` × ``ncols`` axes: constrained layout, or fixed ``margins``
     (``subplots_adjust``'s arguments: several times faster to save, for figures whose labels are known)."""
+    from matplotlib.figure import Figure
     fig = Figure(figsize=(size * ncols, size * nrows * 0.9), layout=None if margins else "constrained")
     axes = fig.subplots(nrows, ncols, squeeze=False).ravel().tolist()
     if margins:
@@ -931,7 +934,7 @@ def _missing(title: str, why: str) -> str:
 
 
 #: A figure of the HTML report: (file stem, title, columns, rows, draw).
-_Spec = tuple[str, str, int, int, Callable[[list[Axes]], None]]
+_Spec = tuple[str, str, int, int, Callable[[list["Axes"]], None]]
 
 
 def _figure_specs(data: ReportData) -> dict[str, _Spec | str]:

@@ -56,7 +56,7 @@ from polarshape.brdf.geometry import (
     shading_geometry,
     tiny,
 )
-from polarshape.brdf.quadrature import ThetaWarp, gauss_legendre, theta_cutoff, theta_rule
+from polarshape.brdf.quadrature import BLOCK_ELEMENTS, ThetaWarp, gauss_legendre, theta_cutoff, theta_rule
 from polarshape.brdf.smith import interp_uniform
 
 
@@ -97,13 +97,18 @@ def arc_nodes(theta: np.ndarray, theta_w: np.ndarray, n: int) -> tuple[np.ndarra
         phi, weights: (G, Q, n) each.
     """
     x, w = gauss_legendre(n)
+    phic = arc_half_width(theta, theta_w)
+    return phic[..., None] * x, phic[..., None] * w
+
+
+def arc_half_width(theta: np.ndarray, theta_w: np.ndarray) -> np.ndarray:
+    """φ_c of :func:`arc_nodes`: (Q,) facet polar angles θ, (G,) polar angles θ_ω -> (G, Q) in (0, π]."""
     st, ct = np.sin(theta)[None, :], np.cos(theta)[None, :]
     sw, cw = np.sin(theta_w)[:, None], np.cos(theta_w)[:, None]
     with np.errstate(divide="ignore", invalid="ignore"):
         r = (ct * cw) / (st * sw)
     full = ~(r < 1.0)  # includes r = inf / nan (θ or θ_ω = 0)
-    phic = np.where(full, math.pi, np.arccos(-np.clip(np.nan_to_num(r, nan=1.0, posinf=1.0), -1.0, 1.0)))
-    return phic[..., None] * x, phic[..., None] * w
+    return np.where(full, math.pi, np.arccos(-np.clip(np.nan_to_num(r, nan=1.0, posinf=1.0), -1.0, 1.0)))
 
 
 def fold_arc_rule(phi: np.ndarray, wphi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -188,13 +193,33 @@ def n_fourier_modes(kappa: float, alpha: float, beta: float, *, log_tol: float =
     return min(cap, int(math.ceil(math.sqrt(2.0 * z * log_tol))) + 3)
 
 
+def _facet_frame(sq: Tensor, cq: Tensor, tg: Tensor, phi: Tensor, wphi: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The exit geometry of the facets at the arc nodes of some rows of the θ grid, with
+    ω = (sin θ_g, 0, cos θ_g): [n·ω]₊, the arc weight × [n·ω]₊, and the facet normal's components
+    (ax, n_y) in the frame e'_x = (−cos θ_g, 0, sin θ_g), e'_y = (0, 1, 0) (the projection of N).
+    It depends on the layout alone (not on μ, α, β, κ).
+
+    Args:
+        sq, cq: (Q,) sin θ, cos θ of the facet nodes.
+        tg: (g,) polar angles of ω (rows of the grid); phi, wphi: (g, Q, n) their arc rules.
+
+    Returns:
+        cos_o, base, ax, n_y: each (g, Q, n).
+    """
+    sg, cg = torch.sin(tg)[:, None, None], torch.cos(tg)[:, None, None]
+    n_x, n_y, n_z = sq[None, :, None] * torch.cos(phi), sq[None, :, None] * torch.sin(phi), cq[None, :, None]
+    cos_o = (n_x * sg + n_z * cg).clamp_min(0.0)  # n·ω
+    ax = -n_x * cg + n_z * sg
+    return cos_o, wphi * cos_o, ax, n_y  # base = arc weight × [n·ω]₊
+
+
 def _facet_modes(
     sq: Tensor, cq: Tensor, tg: Tensor, phi: Tensor, wphi: Tensor, ior: Tensor, n_modes: int
 ) -> tuple[Tensor, Tensor]:
     """The facet side of J for some rows of the θ grid, before the factor bq = θ weight × sin θ ×
     D(θ) of each facet node (so that it depends on μ and the layout only, not on α, β, κ): azimuthal
     Fourier modes of the exit (and, with the same integrand, entry) weights, and the arc sums of
-    the projected areas.
+    the projected areas. (κ = 0, one mode, takes :func:`_separable_modes`.)
 
     Args:
         sq, cq: (Q,) sin θ, cos θ of the facet nodes.
@@ -205,25 +230,96 @@ def _facet_modes(
         h_modes (3, M, g, Q) (intensity, s1 cosine modes; s2 sine modes), area_q (g, Q) with
         P(θ_g) = Σ_Q area_q · bq.
     """
-    sg, cg = torch.sin(tg)[:, None, None], torch.cos(tg)[:, None, None]
-    n_x, n_y, n_z = sq[None, :, None] * torch.cos(phi), sq[None, :, None] * torch.sin(phi), cq[None, :, None]
-    cos_o = (n_x * sg + n_z * cg).clamp_min(0.0)  # n·ω with ω = (sin θ_g, 0, cos θ_g)
+    cos_o, base, ax, n_y = _facet_frame(sq, cq, tg, phi, wphi)
     fr = fresnel(cos_o, ior)  # spec §5 transmission at θ_o
-    # facet normal in the frame e'_x = (−cos θ_g, 0, sin θ_g), e'_y = (0, 1, 0) (projection of N)
-    ax = -n_x * cg + n_z * sg
     r2 = (ax * ax + n_y * n_y).clamp_min(tiny(phi.dtype))
-    base = wphi * cos_o  # arc weight × [n·ω]₊
     area_q = base.sum(-1)  # (g, Q)
-    if n_modes == 1:
-        # κ = 0: only m = 0, the arc sums of intensity and s1 (the s2 sine mode is 0); the sums of
-        # ArcFourier's separable case without its (3, g, Q, n) stack
-        even = torch.stack([(base * fr.t_plus).sum(-1), (base * (-fr.t_minus) * ((ax * ax - n_y * n_y) / r2)).sum(-1)])
-        return torch.cat([even.unsqueeze(1), torch.zeros_like(even[:1]).unsqueeze(1)]), area_q
     cos2, sin2 = (ax * ax - n_y * n_y) / r2, 2.0 * ax * n_y / r2
     h = torch.stack([base * fr.t_plus, base * (-fr.t_minus) * cos2, base * (-fr.t_minus) * sin2])  # (3,g,Q,n)
     # intensity and s1 are even in φ (cosine modes), s2 odd (sine modes)
     h_even, h_odd = ArcFourier.apply(h[:2], h[2], phi, n_modes)  # (2, M, g, Q), (M, g, Q)
     return torch.cat([h_even, h_odd.unsqueeze(0)]), area_q
+
+
+@dataclass(frozen=True)
+class _SeparableGeometry:
+    """What the κ = 0 facet side takes from the layout alone (not μ): :func:`_facet_frame` on every
+    row of the θ grid, in blocks of rows of at most :data:`~polarshape.brdf.quadrature.BLOCK_ELEMENTS`
+    elements at the arc nodes of φ ≥ 0 (temporaries that stay in cache).
+
+    Attributes:
+        blocks: per block of rows (r,): cos_o_half (r, Q, n − n//2) = [n·ω]₊ at the arc nodes of
+            φ ≥ 0, base (r, Q, n) = arc weight × [n·ω]₊, cos2 (r, Q, n) = cos 2ψ of the facet
+            normal in the frame of the projection of N. The arc rules are symmetric (φ_i =
+            −φ_{n−1−i}, equal weights; :func:`arc_nodes`) and n·ω is even in φ, so cos_o_half holds
+            every distinct exit angle: Fresnel is evaluated there and mirrored (:func:`_mirrored`; so
+            are base and cos2, which are even in φ too, when they are made).
+        odd: n mod 2 (an odd rule's middle node, φ = 0, is its own mirror image).
+        area_q: (G, Q) arc sums of base: P(θ_g) = Σ_Q area_q · bq.
+    """
+
+    blocks: tuple[tuple[Tensor, Tensor, Tensor], ...]
+    odd: int
+    area_q: Tensor
+
+    def numel(self) -> int:
+        return sum(t.numel() for block in self.blocks for t in block)
+
+
+def _mirrored(half: Tensor, odd: int) -> Tensor:
+    """(..., n − n//2) values at the arc nodes of φ ≥ 0 -> (..., n) at all n nodes of the symmetric arc
+    rule (φ_i = −φ_{n−1−i}) of a function even in φ; ``odd`` = n mod 2."""
+    return torch.cat([half[..., odd:].flip(-1), half], dim=-1)
+
+
+#: The κ = 0 facet geometry (:class:`_SeparableGeometry`) of the last few layouts, by everything it
+#: depends on: the layout (α, β, κ that place the nodes), the rules, dtype and device — not μ, not
+#: α, β themselves. A μ change on a frozen layout (a fit's μ difference; the next iteration's
+#: differences at an accepted trial point) then costs Fresnel on the distinct exit angles and two
+#: weighted sums. Constants only (no autograd history), so kept whether or not μ requires grad;
+#: ≈ 2.5·G·Q·n elements (κ = 0: 4–7 MB in float64) and at most
+#: :data:`FACET_CACHE_MAX_ELEMENTS` each. Emptied by :func:`clear_facet_cache`.
+_GEOMETRY_CACHE: OrderedDict[tuple, _SeparableGeometry] = OrderedDict()
+GEOMETRY_CACHE_ENTRIES = 4
+
+
+def _separable_geometry(key: tuple, sq: Tensor, cq: Tensor, tg: Tensor, tq_np: np.ndarray, tg_np: np.ndarray,
+                        n: int, rows: int) -> _SeparableGeometry:
+    """The :class:`_SeparableGeometry` of a layout (``key``; facet nodes tq_np (Q,), grid tg_np (G,), n arc
+    nodes), from :data:`_GEOMETRY_CACHE` when it has it; blocks of at most ``rows`` rows."""
+    if key in _GEOMETRY_CACHE:
+        _GEOMETRY_CACHE.move_to_end(key)
+        return _GEOMETRY_CACHE[key]
+    half = n // 2
+    x, w = (torch.tensor(v[half:], dtype=sq.dtype, device=sq.device) for v in gauss_legendre(n))  # φ ≥ 0 (a copy: read-only)
+    phic = torch.as_tensor(arc_half_width(tq_np, tg_np), dtype=sq.dtype, device=sq.device)[..., None]  # (G, Q, 1)
+    rows = max(1, min(rows, BLOCK_ELEMENTS // (sq.numel() * (n - half))))
+    blocks, areas = [], []
+    for g0 in range(0, tg.numel(), rows):
+        pc = phic[g0 : g0 + rows]
+        cos_o, base, ax, n_y = _facet_frame(sq, cq, tg[g0 : g0 + rows], pc * x, pc * w)  # :func:`arc_nodes`' φ ≥ 0
+        base = _mirrored(base, n % 2)
+        blocks.append((cos_o, base, _mirrored(double_angle_of(ax, n_y)[0], n % 2)))
+        areas.append(base.sum(-1))
+    geo = _SeparableGeometry(tuple(blocks), n % 2, torch.cat(areas))
+    if geo.numel() <= FACET_CACHE_MAX_ELEMENTS:
+        _GEOMETRY_CACHE[key] = geo
+        while len(_GEOMETRY_CACHE) > GEOMETRY_CACHE_ENTRIES:
+            _GEOMETRY_CACHE.popitem(last=False)
+    return geo
+
+
+def _separable_modes(geo: _SeparableGeometry, ior: Tensor) -> Tensor:
+    """:func:`_facet_modes` of κ = 0 on every row: only m = 0, the arc sums of intensity and s1 (the s2
+    sine mode is 0) — ArcFourier's separable case without its (3, G, Q, n) stack. Returns h_modes
+    (3, 1, G, Q)."""
+    parts = []
+    for cos_o_half, base, cos2 in geo.blocks:
+        fr = fresnel(cos_o_half, ior)  # spec §5 transmission at θ_o, on the distinct exit angles
+        t_plus, r_minus = _mirrored(fr.t_plus, geo.odd), _mirrored(fr.r_minus, geo.odd)  # T+, −T−
+        parts.append(torch.stack([(base * t_plus).sum(-1), (base * r_minus * cos2).sum(-1)]))
+    even = torch.cat(parts, dim=1)  # (2, G, Q)
+    return torch.cat([even.unsqueeze(1), torch.zeros_like(even[:1]).unsqueeze(1)])
 
 
 #: The facet sides of the last few table builds (:func:`_facet_side`), by what they depend on: μ, the
@@ -247,34 +343,41 @@ KERNEL_CACHE_ENTRIES = 2
 
 
 def clear_facet_cache() -> int:
-    """Empty the facet-side and kernel caches of :func:`build_body_table` (their memory back; the
-    tables do not change); returns how many entries they held."""
-    n = len(_FACET_CACHE) + len(_KERNEL_CACHE)
+    """Empty the facet-side caches of :func:`build_body_table` (:data:`_FACET_CACHE` and the κ = 0
+    geometry, :data:`_GEOMETRY_CACHE`) and the κ > 0 kernels (:data:`_KERNEL_CACHE`): their memory
+    back; the tables do not change. Returns how many entries they held."""
+    n = len(_FACET_CACHE) + len(_GEOMETRY_CACHE) + len(_KERNEL_CACHE)
     _FACET_CACHE.clear()
+    _GEOMETRY_CACHE.clear()
     _KERNEL_CACHE.clear()
     return n
 
 
-def _facet_side(key: tuple, sq: Tensor, cq: Tensor, tg: Tensor, phi_np: np.ndarray | None,
-                wphi_np: np.ndarray | None, ior: Tensor,
-                n_modes: int, rows: int) -> tuple[Tensor, Tensor]:
+def _facet_side(key: tuple, sq: Tensor, cq: Tensor, tg: Tensor, tq_np: np.ndarray, tg_np: np.ndarray, n_phi: int,
+                ior: Tensor, n_modes: int, rows: int) -> tuple[Tensor, Tensor]:
     """:func:`_facet_modes` of every row of the θ grid, ``rows`` at a time: h_modes (3, M, G, Q),
-    area_q (G, Q); from :data:`_FACET_CACHE` when it has ``key`` and μ carries no autograd history."""
+    area_q (G, Q); from :data:`_FACET_CACHE` when it has ``key`` and μ carries no autograd history.
+    tq_np (Q,), tg_np (G,): the facet nodes and the grid; n_phi: nodes per arc (:func:`arc_nodes`)."""
     cacheable = not ior.requires_grad
     if cacheable and key in _FACET_CACHE:
         _FACET_CACHE.move_to_end(key)
         return _FACET_CACHE[key]
 
-    assert phi_np is not None and wphi_np is not None
+    if n_modes == 1:  # κ = 0: the geometry (by layout: the key without μ) and Fresnel
+        geo = _separable_geometry(key[1:], sq, cq, tg, tq_np, tg_np, n_phi, rows)
+        side = _separable_modes(geo, ior), geo.area_q
+    else:
+        # κ > 0: the modes on the φ ≥ 0 half of the arcs (the integrands are even or odd in φ)
+        phi_np, wphi_np = fold_arc_rule(*arc_nodes(tq_np, tg_np, n_phi))  # (G, Q, ⌈n/2⌉)
 
-    def T(x: np.ndarray) -> Tensor:
-        return torch.as_tensor(x, dtype=sq.dtype, device=sq.device)
+        def T(x: np.ndarray) -> Tensor:
+            return torch.as_tensor(x, dtype=sq.dtype, device=sq.device)
 
-    parts = [
-        _facet_modes(sq, cq, tg[g0 : g0 + rows], T(phi_np[g0 : g0 + rows]), T(wphi_np[g0 : g0 + rows]), ior, n_modes)
-        for g0 in range(0, tg.numel(), rows)
-    ]
-    side = torch.cat([hm for hm, _ in parts], dim=2), torch.cat([ar for _, ar in parts])
+        parts = [
+            _facet_modes(sq, cq, tg[g0 : g0 + rows], T(phi_np[g0 : g0 + rows]), T(wphi_np[g0 : g0 + rows]), ior, n_modes)
+            for g0 in range(0, tg.numel(), rows)
+        ]
+        side = torch.cat([hm for hm, _ in parts], dim=2), torch.cat([ar for _, ar in parts])
     if cacheable and side[0].numel() <= FACET_CACHE_MAX_ELEMENTS:
         _FACET_CACHE[key] = side
         while len(_FACET_CACHE) > FACET_CACHE_ENTRIES:
@@ -413,11 +516,7 @@ def build_body_table(
     # the rows of the θ grid are independent: a few at a time keep the (rows, Q, n) temporaries small
     rows = max(1, chunk_elements // (n_q * n_phi))
     key = (float(ior.detach()), a, b, kap, n_grid, n_theta, max_width, n_modes, n_phi, rows, dt, str(dev))
-    cached = key in _FACET_CACHE and not ior.requires_grad
-    phi_np, wphi_np = (None, None) if cached else arc_nodes(tq_np, tg_np, n_phi)  # (G, Q, n)
-    if not cached and n_modes > 1:  # κ > 0: the facet side on the φ ≥ 0 half of the arcs (even/odd in φ)
-        phi_np, wphi_np = fold_arc_rule(phi_np, wphi_np)  # (G, Q, ⌈n/2⌉)
-    h_raw, area_q = _facet_side(key, sq, cq, tg, phi_np, wphi_np, ior, n_modes, rows)
+    h_raw, area_q = _facet_side(key, sq, cq, tg, tq_np, tg_np, n_phi, ior, n_modes, rows)
     h_modes = h_raw * bq  # (3, M, G, Q)
     area = (area_q * bq).sum(-1)  # P(θ_g) (spec §4)   (G,)
 

@@ -17,12 +17,21 @@ from polarshape.brdf.geometry import tiny
 
 
 class FresnelTerms(NamedTuple):
-    """R+, R−, T+, T− of spec §5, each (...)."""
+    """R+, R− of spec §5, each (...); T+ = 1 − R+ and T− = −R− are computed when read (a caller that
+    needs only the reflection, or only T+ and R−, makes neither)."""
 
     r_plus: Tensor
     r_minus: Tensor
-    t_plus: Tensor
-    t_minus: Tensor
+
+    @property
+    def t_plus(self) -> Tensor:
+        """T+ = (T_s + T_p)/2 = 1 − R+ (...)."""
+        return 1.0 - self.r_plus
+
+    @property
+    def t_minus(self) -> Tensor:
+        """T− = (T_s − T_p)/2 = −R− ≤ 0 (...)."""
+        return -self.r_minus
 
 
 def fresnel(cos_i: Tensor, ior: Tensor | float) -> FresnelTerms:
@@ -33,17 +42,16 @@ def fresnel(cos_i: Tensor, ior: Tensor | float) -> FresnelTerms:
         ior: μ, float or broadcastable tensor (μ → 1 gives R = 0, T = 1).
 
     Returns:
-        :class:`FresnelTerms` (R+, R−, T+, T−), finite with finite gradients everywhere.
+        :class:`FresnelTerms` (R+, R−; T+, T− on reading), finite with finite gradients everywhere.
     """
     eps = tiny(cos_i.dtype)
     mu = torch.as_tensor(ior, dtype=cos_i.dtype, device=cos_i.device)
     ci = cos_i.clamp(0.0, 1.0)
     sin2_t = (1.0 - ci * ci) / (mu * mu)
     ct = torch.sqrt((1.0 - sin2_t).clamp_min(eps))
-    r_s = (ci - mu * ct) / (ci + mu * ct).clamp_min(eps)
-    r_p = (mu * ci - ct) / (mu * ci + ct).clamp_min(eps)
+    # the denominators are ≥ μ·√eps > eps for any μ > √eps (ct ≥ √eps): no clamp needed, none taken
+    r_s = (ci - mu * ct) / (ci + mu * ct)
+    r_p = (mu * ci - ct) / (mu * ci + ct)
     rs2 = r_s * r_s
     rp2 = r_p * r_p
-    r_plus = 0.5 * (rs2 + rp2)
-    r_minus = 0.5 * (rs2 - rp2)
-    return FresnelTerms(r_plus, r_minus, 1.0 - r_plus, -r_minus)
+    return FresnelTerms(0.5 * (rs2 + rp2), 0.5 * (rs2 - rp2))

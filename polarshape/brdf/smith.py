@@ -12,11 +12,15 @@ form (:func:`clipped_cos_azimuthal`), leaving a 1-D integral over θ_m:
 Two evaluators: :func:`projected_area_exact` (adaptive: the kink θ_m = π/2 − θ_ω is a panel
 breakpoint and the rule is refined until converged) and :class:`SmithTable` (P tabulated for the
 current α, β on a grid dense near grazing, linearly interpolated; error measured in the tests).
+The azimuthal factor Φ of a table depends on its layout alone (grid and θ_m rule), not on α, β:
+it is kept for the last few layouts (:func:`clear_smith_cache`), so a fit's finite differences on a
+frozen layout rebuild a table as one weighted sum.
 """
 
 from __future__ import annotations
 
 import math
+from collections import OrderedDict
 from dataclasses import dataclass
 
 import torch
@@ -24,7 +28,7 @@ from torch import Tensor
 
 from polarshape.brdf.distribution import d_shape
 from polarshape.brdf.geometry import tiny
-from polarshape.brdf.quadrature import HALF_PI, ThetaWarp, composite_rule, theta_breaks
+from polarshape.brdf.quadrature import BLOCK_ELEMENTS, HALF_PI, ThetaWarp, composite_rule, theta_breaks
 
 
 def clipped_cos_azimuthal(a: Tensor, b: Tensor) -> Tensor:
@@ -38,11 +42,23 @@ def clipped_cos_azimuthal(a: Tensor, b: Tensor) -> Tensor:
     return torch.where(b > a, 2.0 * (a * phic + s), 2.0 * math.pi * a)
 
 
+def _azimuthal_on_nodes(theta_w: Tensor, th: Tensor) -> Tensor:
+    """Φ(cos θ_ω cos θ_m, sin θ_ω sin θ_m) for (...) θ_ω and the θ_m nodes th (Q,): returns (..., Q)."""
+    tw = theta_w.unsqueeze(-1)
+    return clipped_cos_azimuthal(torch.cos(tw) * torch.cos(th), torch.sin(tw) * torch.sin(th))
+
+
+def _projected_area_of(phi: tuple[Tensor, ...], th: Tensor, w: Tensor, alpha: Tensor, beta: Tensor, c: Tensor) -> Tensor:
+    """P(θ_ω) from the azimuthal factors of :func:`_azimuthal_on_nodes` in blocks of θ_ω, phi
+    ((g, Q), ...) or ((..., Q),), and the θ_m rule (th, w) (Q,): returns (G,) or (...)."""
+    wd = w * torch.sin(th) * d_shape(th, alpha, beta)  # (Q,)
+    sums = [(p * wd).sum(-1) for p in phi]
+    return c * (sums[0] if len(sums) == 1 else torch.cat(sums))
+
+
 def _projected_area_on_nodes(theta_w: Tensor, th: Tensor, w: Tensor, alpha: Tensor, beta: Tensor, c: Tensor) -> Tensor:
     """P(θ_ω) for (...) θ_ω with the θ_m rule (th, w) of shape (Q,): returns (...)."""
-    tw = theta_w.unsqueeze(-1)
-    phi = clipped_cos_azimuthal(torch.cos(tw) * torch.cos(th), torch.sin(tw) * torch.sin(th))
-    return c * (phi * (w * torch.sin(th) * d_shape(th, alpha, beta))).sum(-1)
+    return _projected_area_of((_azimuthal_on_nodes(theta_w, th),), th, w, alpha, beta, c)
 
 
 def projected_area_exact(
@@ -116,6 +132,55 @@ class SmithTable:
         return torch.cos(theta).clamp_min(0.0) / self.projected_area(theta)
 
 
+@dataclass(frozen=True)
+class _SmithLayout:
+    """What a Smith table takes from its layout alone: the grid (G,) and its cos, the θ_m rule (Q,), and
+    the azimuthal factors Φ (G, Q) (:func:`_azimuthal_on_nodes`) in blocks of grid rows of at most
+    :data:`~polarshape.brdf.quadrature.BLOCK_ELEMENTS` elements."""
+
+    warp: ThetaWarp
+    cos_grid: Tensor
+    th: Tensor
+    w: Tensor
+    phi: tuple[Tensor, ...]
+
+
+#: The layouts of the last few Smith tables (:func:`build_smith_table`), by everything they depend on:
+#: the layout (α, β), the grid size, the nodes per panel, dtype and device — not α, β themselves, not
+#: μ. A fit's finite differences in μ, α and β on a frozen layout then cost one weighted sum each.
+#: Constants only (no autograd history): Φ depends on no parameter. ≤ 2·513·330 float64 per entry.
+_SMITH_CACHE: OrderedDict[tuple, _SmithLayout] = OrderedDict()
+SMITH_CACHE_ENTRIES = 4
+
+
+def clear_smith_cache() -> int:
+    """Empty the layout cache of :func:`build_smith_table` (its memory back; the tables do not change);
+    returns how many entries it held."""
+    n = len(_SMITH_CACHE)
+    _SMITH_CACHE.clear()
+    return n
+
+
+def _smith_layout(la: float, lb: float, n_grid: int, n: int, dtype: torch.dtype, device: torch.device) -> _SmithLayout:
+    """The :class:`_SmithLayout` of a table placed at (α, β) = (la, lb), from :data:`_SMITH_CACHE` when it has it."""
+    key = (la, lb, n_grid, n, dtype, str(device))
+    if key in _SMITH_CACHE:
+        _SMITH_CACHE.move_to_end(key)
+        return _SMITH_CACHE[key]
+    warp = smith_warp(la)
+    grid = torch.as_tensor(warp.nodes(n_grid), dtype=dtype, device=device)
+    nodes, weights = composite_rule(theta_breaks(la, lb, max_width=0.05), n)
+    th = torch.as_tensor(nodes, dtype=dtype, device=device)
+    w = torch.as_tensor(weights, dtype=dtype, device=device)
+    rows = max(1, BLOCK_ELEMENTS // th.numel())
+    phi = tuple(_azimuthal_on_nodes(grid[g0 : g0 + rows], th) for g0 in range(0, grid.numel(), rows))
+    lay = _SmithLayout(warp=warp, cos_grid=torch.cos(grid), th=th, w=w, phi=phi)
+    _SMITH_CACHE[key] = lay
+    while len(_SMITH_CACHE) > SMITH_CACHE_ENTRIES:
+        _SMITH_CACHE.popitem(last=False)
+    return lay
+
+
 def build_smith_table(
     alpha: Tensor, beta: Tensor, c: Tensor, *, n_grid: int = 513, n: int = 8, layout: tuple[float, float] | None = None
 ) -> SmithTable:
@@ -128,10 +193,6 @@ def build_smith_table(
         layout: (α, β) at which to place grid and nodes (default: the values themselves).
     """
     la, lb = layout if layout is not None else (float(alpha.detach()), float(beta.detach()))
-    warp = smith_warp(la)
-    grid = torch.as_tensor(warp.nodes(n_grid), dtype=alpha.dtype, device=alpha.device)
-    nodes, weights = composite_rule(theta_breaks(la, lb, max_width=0.05), n)
-    th = torch.as_tensor(nodes, dtype=alpha.dtype, device=alpha.device)
-    w = torch.as_tensor(weights, dtype=alpha.dtype, device=alpha.device)
-    area = _projected_area_on_nodes(grid, th, w, alpha, beta, c)
-    return SmithTable(warp=warp, excess=area - torch.cos(grid))
+    lay = _smith_layout(la, lb, n_grid, n, alpha.dtype, alpha.device)
+    area = _projected_area_of(lay.phi, lay.th, lay.w, alpha, beta, c)
+    return SmithTable(warp=lay.warp, excess=area - lay.cos_grid)

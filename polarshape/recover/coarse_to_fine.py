@@ -50,6 +50,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+from collections import OrderedDict
 from dataclasses import dataclass, field, replace
 from typing import Literal
 
@@ -75,8 +76,8 @@ from polarshape.recover.reflectometry import (
 logger = logging.getLogger(__name__)
 
 __all__ = [
-    "FMBRDFState", "KnownMaterial", "SolveLog", "build_pyramid", "fit_albedo_scale", "fit_level", "profile_alpha",
-    "solve_fmbrdf", "upsample_normals",
+    "FMBRDFState", "KnownMaterial", "SolveLog", "TableCache", "build_pyramid", "fit_albedo_scale", "fit_level",
+    "profile_alpha", "solve_fmbrdf", "upsample_normals",
 ]
 
 
@@ -100,6 +101,53 @@ class SolveLog:
     def count(self, name: str, n: int = 1) -> None:
         """Add ``n`` to ``counts[name]``."""
         self.counts[name] = self.counts.get(name, 0) + n
+
+
+#: Most materials' tables a :class:`TableCache` keeps (a κ > 0 table at ``n_grid`` 65 is ~26 MB, a
+#: κ = 0 one 0.2 MB): a split of the model choice scores the material it splits and six new ones.
+TABLE_CACHE_SIZE = 12
+
+
+class TableCache:
+    """The fast evaluator's tables of the materials one run has built, for the steps that need the
+    same material again (the finer levels, the materials selection, the final render all use the
+    final material's): keyed on the exact (μ, α, β, κ, ``n_grid``, device) — a table is a
+    deterministic function of these, so a hit is the build it replaces, bit for bit. Bounded: the
+    :data:`TABLE_CACHE_SIZE` most recently used are kept. Passed explicitly (no module state): a run
+    makes one and hands it to the steps that share it.
+
+    Attributes:
+        builds: tables built. hits: tables handed back without a build.
+    """
+
+    def __init__(self, most: int = TABLE_CACHE_SIZE) -> None:
+        if most < 1:
+            raise ValueError(f"TableCache: most must be ≥ 1 (got {most})")
+        self.most = most
+        self.builds = 0
+        self.hits = 0
+        self._tables: OrderedDict[tuple, FMBRDFTables] = OrderedDict()
+
+    def __len__(self) -> int:
+        return len(self._tables)
+
+    def get(self, params: FMBRDFParams, device: torch.device | str, n_grid: int = 65) -> FMBRDFTables:
+        """The tables of ``params``' (μ, α, β, κ) at ``n_grid`` on ``device`` (built on a miss:
+        :func:`polarshape.brdf.build_tables`; the albedos k_s, k_b are not part of a table)."""
+        key = (float(params.ior), float(params.alpha), float(params.beta), float(params.kappa), int(n_grid),
+               str(torch.device(device)))
+        tables = self._tables.get(key)
+        if tables is not None:
+            self.hits += 1
+            self._tables.move_to_end(key)
+            return tables
+        tables = build_tables(ior=params.ior, alpha=params.alpha, beta=params.beta, kappa=params.kappa,
+                              device=device, n_grid=n_grid)
+        self.builds += 1
+        self._tables[key] = tables
+        while len(self._tables) > self.most:
+            self._tables.popitem(last=False)
+        return tables
 
 
 @dataclass(frozen=True)
@@ -236,17 +284,20 @@ class _Level:
     neighbours: Tensor | None
 
 
-def _level_problem(lv: _Level, params: FMBRDFParams, options: RecoveryOptions, polarised: bool) -> NormalProblem:
-    """The per-pixel normal problem of the level's observations under material ``params`` (its tables built)."""
-    return NormalProblem.build(params.build_tables(device=lv.n.device), lv.obs.stokes, params.k_s,
+def _level_problem(lv: _Level, params: FMBRDFParams, options: RecoveryOptions, polarised: bool,
+                   tables: TableCache | None = None) -> NormalProblem:
+    """The per-pixel normal problem of the level's observations under material ``params`` (its tables
+    built, or taken from ``tables`` when the run already built them)."""
+    built = params.build_tables(device=lv.n.device) if tables is None else tables.get(params, lv.n.device)
+    return NormalProblem.build(built, lv.obs.stokes, params.k_s,
                                options.per_pixel_albedo, params.k_b, polarised, lv.delta)
 
 
-def _normal_step(lv: _Level, options: RecoveryOptions, polarised: bool, *, max_iter: int, level: int, it: int
-                 ) -> tuple[NormalProblem, Tensor, int]:
+def _normal_step(lv: _Level, options: RecoveryOptions, polarised: bool, *, max_iter: int, level: int, it: int,
+                 tables: TableCache | None = None) -> tuple[NormalProblem, Tensor, int]:
     """Step b: per-pixel normals for the level's material (updates ``lv.n``, ``lv.k_b``); returns the
-    problem, the per-pixel loss and the LM iterations."""
-    problem = _level_problem(lv, lv.params, options, polarised)
+    problem, the per-pixel loss and the LM iterations. ``tables``: the run's tables (:class:`TableCache`)."""
+    problem = _level_problem(lv, lv.params, options, polarised, tables)
     lv.n, lv.k_b, loss_pp, n_iter = refine_normals(problem, lv.n, lv.obs, max_iter=max_iter)
     if lv.neighbours is not None:
         lv.n, lv.k_b, loss_pp, moved = propagate_normals(problem, lv.n, lv.k_b, loss_pp, lv.obs, lv.neighbours)
@@ -277,8 +328,8 @@ def _material_coords(params: FMBRDFParams, kappa: bool) -> list[float]:
 
 
 def _extrapolate(lv: _Level, previous: tuple[Tensor, FMBRDFParams], direction: list[float], loss_pp: Tensor,
-                 options: RecoveryOptions, polarised: bool, kappa: bool, log: SolveLog
-                 ) -> tuple[Tensor, float] | None:
+                 options: RecoveryOptions, polarised: bool, kappa: bool, log: SolveLog,
+                 tables: TableCache | None = None) -> tuple[Tensor, float] | None:
     """Over-relax a crawling alternation (updates ``lv`` and returns its per-pixel loss and the step
     taken, or None when no step lowers the loss).
 
@@ -308,7 +359,7 @@ def _extrapolate(lv: _Level, previous: tuple[Tensor, FMBRDFParams], direction: l
             normals = unit(lv.n + t * (lv.n - n_prev))
             facing = (normals * lv.obs.view).sum(-1) > 0
             normals = torch.where(facing.unsqueeze(-1), normals, lv.n)
-            problem = _level_problem(lv, trial, options, polarised)
+            problem = _level_problem(lv, trial, options, polarised, tables)  # if taken: the next normal step's
             with torch.no_grad():
                 r, k_b = problem.residual(normals, lv.obs)
                 trial_pp = problem.loss(r)
@@ -347,8 +398,10 @@ KAPPA_TEST_GRID = 33
 KAPPA_JAC_GRID = 17
 #: A kept κ's polish on full tables ends once an iteration changed the loss by < KAPPA_POLISH_TOL
 #: (the alternation's own convergence test, 0.1 %) and by < KAPPA_POLISH_RATE × the change before
-#: (a fast rate: the rest of the descent is ≤ 1.1e-4 of the loss), else at 1e-5 as before; its last
-#: full-table iterations moved κ by < 0.2 % on the 256² κ 50 spheres and cost 1–1.5 s each.
+#: (a fast rate: the rest of the descent is ≤ 1.1e-4 of the loss), or once its first iteration changed it
+#: by < KAPPA_POLISH_RATE × KAPPA_POLISH_TOL (the test had settled on its tables: 256² α 0.3 κ 50, 2e-5),
+#: else at 1e-5 as before; its last full-table iterations moved κ by < 0.2 % on the 256² κ 50 spheres and
+#: cost 1–1.5 s each.
 KAPPA_POLISH_TOL = 1e-3
 KAPPA_POLISH_RATE = 0.1
 
@@ -372,8 +425,8 @@ def _kappa_decision(fit: JointResult, obs_sub: Observations, names: tuple[str, .
     floor = loss_floor(float(kwargs["delta"]))  # type: ignore[arg-type]
     floor_sum = floor * float(obs_sub.weight.sum())  # the same floor for sums of per-pixel losses
     # the test on coarse tables (κ tables cost 0.1–0.6 s a build), to a tenth of the decision's 1 % (tol
-    # 1e-3: κ-free data stop after one iteration), stopped once its gain clearly ends below
-    # KAPPA_KEEP_GAIN; a kept κ is polished on full tables (KAPPA_POLISH_TOL)
+    # 1e-3: κ-free data stop after one iteration), each of its starts stopped once its gain over the κ = 0
+    # optimum clearly ends below KAPPA_KEEP_GAIN; a kept κ is polished on full tables (KAPPA_POLISH_TOL)
     trial, gain = nested_kappa(fit, obs_sub, names=names, decide_gain=KAPPA_KEEP_GAIN,
                                **{**kwargs, "n_grid": KAPPA_TEST_GRID, "jac_grid": KAPPA_JAC_GRID, "tol": 1e-3})
     _joint_record(trial, level, "joint_kappa", log)
@@ -429,7 +482,8 @@ def _decide_kappa(lv: _Level, sub_idx: Tensor, start: tuple[Tensor, FMBRDFParams
 
 def fit_level(inputs: RecoveryInputs, normals: Tensor, params: FMBRDFParams, options: RecoveryOptions, *,
               fit_globals: bool, level: int, seed: int = 0, progress: bool = False, log: SolveLog,
-              material_use: Literal["fit", "fixed", "initial"] = "fit") -> FMBRDFState:
+              material_use: Literal["fit", "fixed", "initial"] = "fit", tables: TableCache | None = None
+              ) -> FMBRDFState:
     """Alternate global parameters and normals on one pyramid level (normals only unless ``fit_globals``).
 
     Args:
@@ -438,6 +492,8 @@ def fit_level(inputs: RecoveryInputs, normals: Tensor, params: FMBRDFParams, opt
         log: history, timings, skips and counts are appended to it.
         material_use: ``fit`` (``params`` is a guess), ``fixed`` (μ, α, β, κ of ``params`` kept,
             albedos solved) or ``initial`` (``params`` starts the fit), module docstring.
+        tables: the run's tables (:class:`TableCache`): the normal steps' materials are taken from it
+            (a finer level's material is the coarser level's last one) and added to it.
     """
     pixels = inputs.mask
     obs = flatten_observations(inputs, pixels)
@@ -452,7 +508,7 @@ def fit_level(inputs: RecoveryInputs, normals: Tensor, params: FMBRDFParams, opt
     kappa_decided = fit_kappa is not None or material_use == "fixed"
     if fit_globals and options.solver == "joint" and material_use != "fixed":
         _joint_level(lv, inputs, sub_idx, options, fit_kappa=fit_kappa, material_use=material_use, level=level,
-                     log=log)
+                     log=log, tables=tables)
         return _state_of(lv, normals)
     window: list[float] = []
     start: tuple[Tensor, FMBRDFParams] | None = None  # the subsample after the first outer iteration
@@ -472,7 +528,7 @@ def fit_level(inputs: RecoveryInputs, normals: Tensor, params: FMBRDFParams, opt
             log.add_time("global_params", t0)
         t0 = time.perf_counter()
         problem, loss_pp, n_iter = _normal_step(lv, options, polarised, max_iter=6 if fit_globals else 10,
-                                                level=level, it=it)
+                                                level=level, it=it, tables=tables)
         log.add_time("normals", t0)
         if it == 0 and fit_globals:  # δ from the first fit's residuals
             new_delta = huber_delta(obs, inputs.noise_std, problem.residual(lv.n, obs)[0])
@@ -486,7 +542,7 @@ def fit_level(inputs: RecoveryInputs, normals: Tensor, params: FMBRDFParams, opt
             kappa = bool(fit_kappa)
             step = [a - b for a, b in zip(_material_coords(lv.params, kappa), _material_coords(previous[1], kappa))]
             if change is not None and _cosine(step, change) >= EXTRAPOLATION_MIN_COSINE:
-                done = _extrapolate(lv, previous, step, loss_pp, options, polarised, kappa, log)
+                done = _extrapolate(lv, previous, step, loss_pp, options, polarised, kappa, log, tables)
                 if done is not None:
                     loss_pp, extrapolated = done
             change = step
@@ -505,7 +561,8 @@ def fit_level(inputs: RecoveryInputs, normals: Tensor, params: FMBRDFParams, opt
                     # the nested fit moved material and subsample normals together: the level's
                     # normals follow the final material once (as the joint solve's level does)
                     t0 = time.perf_counter()
-                    _, loss_pp, n_iter = _normal_step(lv, options, polarised, max_iter=10, level=level, it=it + 1)
+                    _, loss_pp, n_iter = _normal_step(lv, options, polarised, max_iter=10, level=level, it=it + 1,
+                                                      tables=tables)
                     log.add_time("normals", t0)
                     log.history.append({"stage": f"level{level}", "solver": "final_normals", "iteration": it + 1,
                                         "loss": _mean_loss(loss_pp, obs), "lm_iterations": n_iter,
@@ -547,7 +604,8 @@ def _joint_record(fit: JointResult, level: int, stage: str, log: SolveLog) -> No
 
 
 def _joint_level(lv: _Level, inputs: RecoveryInputs, sub_idx: Tensor, options: RecoveryOptions, *,
-                 fit_kappa: bool | None, material_use: Literal["fit", "initial"], level: int, log: SolveLog) -> None:
+                 fit_kappa: bool | None, material_use: Literal["fit", "initial"], level: int, log: SolveLog,
+                 tables: TableCache | None = None) -> None:
     """The coarsest level with the joint solve (updates ``lv``): the alternation's first outer
     iteration as the start (α grid, or a known material's albedos; normals of the whole level),
     then :func:`polarshape.recover.joint_solve.joint_solve` of normals and material on the subsample,
@@ -559,7 +617,7 @@ def _joint_level(lv: _Level, inputs: RecoveryInputs, sub_idx: Tensor, options: R
                              polarised=polarised, delta=lv.delta, use=material_use, log=log)
     log.add_time("global_params", t0)
     t0 = time.perf_counter()
-    problem, loss_pp, n_iter = _normal_step(lv, options, polarised, max_iter=6, level=level, it=0)
+    problem, loss_pp, n_iter = _normal_step(lv, options, polarised, max_iter=6, level=level, it=0, tables=tables)
     new_delta = huber_delta(obs, inputs.noise_std, problem.residual(lv.n, obs)[0])
     if abs(new_delta - lv.delta) > 0.25 * lv.delta:
         lv.delta = new_delta
@@ -585,7 +643,7 @@ def _joint_level(lv: _Level, inputs: RecoveryInputs, sub_idx: Tensor, options: R
     lv.params = fit.params
     lv.n[sub_idx] = fit.normals
     t0 = time.perf_counter()
-    _, loss_pp, n_iter = _normal_step(lv, options, polarised, max_iter=10, level=level, it=1)
+    _, loss_pp, n_iter = _normal_step(lv, options, polarised, max_iter=10, level=level, it=1, tables=tables)
     log.add_time("normals", t0)
     log.history.append({"stage": f"level{level}", "solver": "final_normals", "iteration": 1,
                         "loss": _mean_loss(loss_pp, obs), "lm_iterations": n_iter,
@@ -624,16 +682,20 @@ def upsample_normals(coarser: Tensor, fallback: Tensor) -> Tensor:
 
 def solve_fmbrdf(inputs: RecoveryInputs, initial_normals: Tensor, options: RecoveryOptions, *, seed: int = 0,
                  progress: bool = False, log: SolveLog | None = None,
-                 material: KnownMaterial | None = None) -> tuple[FMBRDFState, SolveLog]:
+                 material: KnownMaterial | None = None, tables: TableCache | None = None
+                 ) -> tuple[FMBRDFState, SolveLog]:
     """Material and normals of ``inputs`` from ``initial_normals`` (H, W, 3), coarse to fine (module docstring).
 
     Args:
         material: a known material, fixed or initial (None: fitted from the default guess).
+        tables: the run's tables (:class:`TableCache`), shared with the steps after the solve (the
+            final material's tables are in it); None: a cache of this solve's own.
 
     Returns:
         The finest level's :class:`FMBRDFState` and the :class:`SolveLog`.
     """
     log = SolveLog() if log is None else log
+    tables = TableCache() if tables is None else tables
     levels = build_pyramid(inputs, options)
     if len(levels) == 1:
         log.skipped.append("coarse_to_fine: single level (image small enough or disabled)")
@@ -652,6 +714,6 @@ def solve_fmbrdf(inputs: RecoveryInputs, initial_normals: Tensor, options: Recov
         start = initial[depth] if state is None else upsample_normals(state.normals, initial[depth])
         state = fit_level(levels[depth], start, first if state is None else state.params, options,
                           fit_globals=state is None, level=depth, seed=seed, progress=progress, log=log,
-                          material_use=use)
+                          material_use=use, tables=tables)
     assert state is not None  # at least one level
     return state, log

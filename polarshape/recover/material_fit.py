@@ -37,7 +37,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import torch
-from scipy.optimize import least_squares, nnls
 from torch import Tensor
 
 from polarshape.brdf import MODELS
@@ -207,6 +206,7 @@ def _eq25_residuals(rendered: Tensor, obs: Observations, eqw: Tensor) -> Tensor:
 def _albedos_nnls(name: str, values: dict[str, float], albedos: list[str], normals: Tensor, obs: Observations
                   ) -> dict[str, float]:
     """Non-negative least-squares albedos on s0 with the other parameters at ``values``."""
+    from scipy.optimize import nnls  # ~0.6 s to import: only when a model is fitted
     valid = (obs.weight > 0).flatten()
     cols = []
     for a in albedos:
@@ -221,6 +221,7 @@ def _albedos_nnls(name: str, values: dict[str, float], albedos: list[str], norma
 def _fit_baseline(name: str, normals: Tensor, obs: Observations, eqw: Tensor, max_nfev: int
                   ) -> tuple[dict[str, float], float]:
     """(parameters, eq. 25 loss) of a baseline by bounded least squares (module docstring)."""
+    from scipy.optimize import least_squares
     bounds = model_parameter_bounds(name)
     names = list(bounds)
     albedos = [n for n in names if n.startswith("k_")]

@@ -49,10 +49,10 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from polarshape.brdf.fmbrdf import FMBRDFTables, build_tables
+from polarshape.brdf.fmbrdf import FMBRDFTables
 from polarshape.brdf.params import FMBRDFParams
 from polarshape.recover.coarse_to_fine import (
-    FMBRDFState, KnownMaterial, SolveLog, fit_albedo_scale, solve_fmbrdf,
+    FMBRDFState, KnownMaterial, SolveLog, TableCache, fit_albedo_scale, solve_fmbrdf,
 )
 from polarshape.recover.normal_solver import NormalProblem, huber_delta, refine_normals
 from polarshape.recover.observations import Observations, RecoveryInputs, flatten_observations
@@ -63,8 +63,8 @@ from polarshape.recover.selfcheck import parameters_at_bounds
 logger = logging.getLogger(__name__)
 
 __all__ = [
-    "MaterialsState", "boundary_pixels", "pixel_losses", "potts_energy", "potts_icm", "region_inputs", "select_materials",
-    "solve_materials",
+    "MaterialsState", "boundary_pixels", "material_tables", "pixel_losses", "potts_energy", "potts_icm",
+    "region_inputs", "select_materials", "solve_materials",
 ]
 
 #: Assign / re-fit alternations of one split (on the lattice).
@@ -140,22 +140,18 @@ class MaterialsState:
                            torch.where(sel, self.k_b, nan))
 
 
-def material_tables(p: FMBRDFParams, device: torch.device, cache: dict | None = None, n_grid: int = 65
+def material_tables(p: FMBRDFParams, device: torch.device, cache: TableCache | None = None, n_grid: int = 65
                     ) -> FMBRDFTables:
-    """The fast evaluator's tables of ``p`` (:func:`polarshape.brdf.build_tables`, ``n_grid``), kept in
-    ``cache`` (keyed by (μ, α, β, κ, n_grid)) when one is given: the model choice scores the same
-    materials many times, and building their tables is most of its cost on a one-material object."""
-    key = (p.ior, p.alpha, p.beta, p.kappa, n_grid, str(device))
-    if cache is None or key not in cache:
-        tables = build_tables(ior=p.ior, alpha=p.alpha, beta=p.beta, kappa=p.kappa, device=device, n_grid=n_grid)
-        if cache is None:
-            return tables
-        cache[key] = tables
-    return cache[key]
+    """The fast evaluator's tables of ``p`` (:func:`polarshape.brdf.build_tables`, ``n_grid``), taken
+    from and kept in the run's ``cache`` (:class:`polarshape.recover.coarse_to_fine.TableCache`, keyed
+    by (μ, α, β, κ, n_grid)) when one is given: the model choice scores the same materials many
+    times, the one-material solve has built the first one, and building tables is most of the
+    model choice's cost on a one-material object."""
+    return (TableCache(1) if cache is None else cache).get(p, device, n_grid)
 
 
 def pixel_losses(materials: list[FMBRDFParams], normals: Tensor, obs: Observations, *, per_pixel_albedo: bool,
-                 polarised: bool, delta: float, cache: dict | None = None, n_grid: int = 65) -> Tensor:
+                 polarised: bool, delta: float, cache: TableCache | None = None, n_grid: int = 65) -> Tensor:
     """(M, P) robust loss of each of P pixels (normals (P, 3) held) under each material, its body
     albedo solved in closed form (:meth:`NormalProblem.pixel_loss`); ``cache``, ``n_grid``: see
     :func:`material_tables`."""
@@ -254,7 +250,7 @@ class _Grid:
     sigma2: float
     options: RecoveryOptions
     seed: int
-    tables: dict = field(default_factory=dict)  # :func:`material_tables`' cache
+    tables: TableCache = field(default_factory=TableCache)  # the run's tables (:func:`material_tables`)
 
     def losses(self, materials: list[FMBRDFParams], normals: Tensor, keep: Tensor | None = None) -> Tensor:
         """(M, h, w) negative log-likelihood of each pixel under each material at held ``normals``
@@ -321,13 +317,14 @@ def _start_pair(grid: _Grid, base: FMBRDFParams, sel: Tensor) -> tuple[FMBRDFPar
     0.45, at the bound 0.01 on a sphere cap of the same two). Also returns the pair's (2, S) losses
     of the S pixels of ``sel`` at the held normals (the early test of :func:`_split`)."""
     n, obs = grid.normals[sel], grid.obs.select(sel)
+    lobe_tables = TableCache(len(ALPHA_GRID))  # used by the start only: kept out of the run's tables
     starts = []
     for a in ALPHA_GRID:
         lobe = replace(base, alpha=a)
         starts.append(fit_albedo_scale(n, obs, lobe, per_pixel_albedo=grid.per_pixel, polarised=grid.polarised,
-                                       tables=material_tables(lobe, n.device, grid.tables, START_TABLE_GRID)))
+                                       tables=material_tables(lobe, n.device, lobe_tables, START_TABLE_GRID)))
     loss = pixel_losses(starts, n, obs, per_pixel_albedo=grid.per_pixel, polarised=grid.polarised,
-                        delta=grid.delta, cache=grid.tables, n_grid=START_TABLE_GRID)  # (A, S)
+                        delta=grid.delta, cache=lobe_tables, n_grid=START_TABLE_GRID)  # (A, S)
     pairs = [(i, j) for i in range(len(starts)) for j in range(i + 1, len(starts))]
     i, j = min(pairs, key=lambda ij: float(torch.minimum(loss[ij[0]], loss[ij[1]]).sum()))
     return starts[i], starts[j], loss[[i, j]]
@@ -498,8 +495,10 @@ def region_inputs(inputs: RecoveryInputs, region: Tensor) -> RecoveryInputs:
 
 
 def _reassign(inputs: RecoveryInputs, materials: list[FMBRDFParams], normals: Tensor, labels: Tensor | None,
-              options: RecoveryOptions, delta: float, sigma2: float) -> tuple[Tensor, Tensor, Tensor]:
-    """Every pixel's normal refined under every material; pixels reassigned by Potts ICM.
+              options: RecoveryOptions, delta: float, sigma2: float, tables: TableCache | None = None
+              ) -> tuple[Tensor, Tensor, Tensor]:
+    """Every pixel's normal refined under every material; pixels reassigned by Potts ICM (``tables``:
+    the run's, :func:`material_tables`).
 
     Returns normals (H, W, 3), k_b (H, W), labels (H, W) (−1 off the mask)."""
     pixels = inputs.mask
@@ -508,8 +507,8 @@ def _reassign(inputs: RecoveryInputs, materials: list[FMBRDFParams], normals: Te
     polarised = inputs.has_polarisation
     cand_n, cand_kb, cand_loss = [], [], []
     for p in materials:
-        problem = NormalProblem.build(p.build_tables(device=n0.device), obs.stokes, p.k_s, options.per_pixel_albedo,
-                                      p.k_b, polarised, delta)
+        problem = NormalProblem.build(material_tables(p, n0.device, tables), obs.stokes, p.k_s,
+                                      options.per_pixel_albedo, p.k_b, polarised, delta)
         n_m, kb_m, loss_m, _ = refine_normals(problem, n0, obs, max_iter=6)
         cand_n.append(n_m)
         cand_kb.append(kb_m)
@@ -547,7 +546,7 @@ def _drop_empty(materials: list[FMBRDFParams], labels: Tensor, mask: Tensor, log
 
 
 def select_materials(inputs: RecoveryInputs, state: FMBRDFState, options: RecoveryOptions, *, wanted: int | None,
-                     seed: int = 0, log: SolveLog | None = None
+                     seed: int = 0, log: SolveLog | None = None, tables: TableCache | None = None
                      ) -> tuple[list[FMBRDFParams], list[dict], float, float]:
     """Steps 2–3 of the module docstring: the materials chosen from the one-material ``state``.
 
@@ -555,6 +554,7 @@ def select_materials(inputs: RecoveryInputs, state: FMBRDFState, options: Recove
         inputs: cropped recovery inputs (H, W).
         state: the one-material solve of ``inputs``.
         wanted: a number of materials, or None (``auto``: as many as pay).
+        tables: the run's tables (:func:`material_tables`; the solve's holds ``state``'s material).
 
     Returns:
         the materials (one or more, on the lattice), one record per split tried, the Huber δ and σ²
@@ -563,7 +563,7 @@ def select_materials(inputs: RecoveryInputs, state: FMBRDFState, options: Recove
     log = SolveLog() if log is None else log
     mask = inputs.mask
     p1 = state.params
-    tables: dict = {}
+    tables = TableCache() if tables is None else tables
     rows, cols = _lattice(mask, DELTA_PIXELS)  # δ from a lattice's residuals (not every pixel rendered again)
     lat_d, obs_d = _lattice_observations(inputs, rows, cols)
     problem = NormalProblem.build(material_tables(p1, mask.device, tables), obs_d.stokes, p1.k_s,
@@ -580,7 +580,7 @@ def select_materials(inputs: RecoveryInputs, state: FMBRDFState, options: Recove
 
 def solve_materials(inputs: RecoveryInputs, initial_normals: Tensor, options: RecoveryOptions, *, seed: int = 0,
                     progress: bool = False, log: SolveLog | None = None,
-                    material: KnownMaterial | None = None) -> MaterialsState:
+                    material: KnownMaterial | None = None, tables: TableCache | None = None) -> MaterialsState:
     """Materials, their pixels and the normals of ``inputs`` (module docstring).
 
     Args:
@@ -588,12 +588,16 @@ def solve_materials(inputs: RecoveryInputs, initial_normals: Tensor, options: Re
         initial_normals: (H, W, 3) start (robust Lambertian PS).
         options: ``options.materials``: ``"auto"`` or a number of materials.
         material: a known material (``recovery.material``): one material, as given.
+        tables: the run's tables (:class:`polarshape.recover.coarse_to_fine.TableCache`), shared by the
+            solves, the selection and the caller's render (None: a cache of this call's own).
 
     Returns:
         :class:`MaterialsState`; with one material, the one-material solve's answer as it is.
     """
     log = SolveLog() if log is None else log
-    state, _ = solve_fmbrdf(inputs, initial_normals, options, seed=seed, progress=progress, log=log, material=material)
+    tables = TableCache() if tables is None else tables
+    state, _ = solve_fmbrdf(inputs, initial_normals, options, seed=seed, progress=progress, log=log, material=material,
+                            tables=tables)
     mask = inputs.mask
     single = MaterialsState([state.params], torch.where(mask, 0, -1), torch.zeros_like(mask), state.normals,
                             state.k_b, [])
@@ -605,7 +609,8 @@ def solve_materials(inputs: RecoveryInputs, initial_normals: Tensor, options: Re
         return single
     t0 = time.perf_counter()
     with torch.no_grad():
-        materials, records, delta, sigma2 = select_materials(inputs, state, options, wanted=wanted, seed=seed, log=log)
+        materials, records, delta, sigma2 = select_materials(inputs, state, options, wanted=wanted, seed=seed, log=log,
+                                                             tables=tables)
     log.add_time("materials_selection", t0)
     if len(materials) == 1:
         return replace(single, selection=records)
@@ -613,7 +618,7 @@ def solve_materials(inputs: RecoveryInputs, initial_normals: Tensor, options: Re
     t0 = time.perf_counter()
     normals = torch.where(torch.isfinite(state.normals), state.normals, initial_normals)
     with torch.no_grad():
-        normals, k_b, labels = _reassign(inputs, materials, normals, None, options, delta, sigma2)
+        normals, k_b, labels = _reassign(inputs, materials, normals, None, options, delta, sigma2, tables)
     log.add_time("materials_reassign", t0)
     for rnd in range(REFINE_ROUNDS):
         before = labels
@@ -624,12 +629,12 @@ def solve_materials(inputs: RecoveryInputs, initial_normals: Tensor, options: Re
                 continue
             start = torch.where(torch.isfinite(normals), normals, initial_normals)
             st, _ = solve_fmbrdf(region_inputs(inputs, region), start, options, seed=seed + 1 + m, log=log,
-                                 material=KnownMaterial(materials[m], "initial"))
+                                 material=KnownMaterial(materials[m], "initial"), tables=tables)
             materials[m] = st.params
             normals = torch.where(region[..., None], st.normals, normals)
         t0 = time.perf_counter()
         with torch.no_grad():
-            normals, k_b, labels = _reassign(inputs, materials, normals, labels, options, delta, sigma2)
+            normals, k_b, labels = _reassign(inputs, materials, normals, labels, options, delta, sigma2, tables)
             count = len(materials)
             materials, labels = _drop_empty(materials, labels, mask, log)
         log.add_time("materials_reassign", t0)

@@ -41,7 +41,6 @@ from typing import Any, Literal
 
 import numpy as np
 import torch
-from scipy.optimize import least_squares, nnls
 
 from polarshape.brdf import build_tables
 from polarshape.brdf.params import FMBRDFParams
@@ -189,6 +188,7 @@ class _Model:
 
 def _nnls_albedos(samples: TableSamples, f_s: np.ndarray, f_b: np.ndarray) -> np.ndarray:
     """Per channel, the albedos (k_s, k_b) ≥ 0 of the cos-weighted linear least-squares fit: (C, 2)."""
+    from scipy.optimize import nnls  # ~0.6 s to import: only when a table is fitted
     a = np.stack([f_s, f_b], axis=1) * samples.cos_i[:, None]  # (S, 2)
     return np.stack([nnls(a, samples.values[c] * samples.cos_i)[0] for c in range(samples.values.shape[0])])
 
@@ -261,6 +261,7 @@ def fit_fmbrdf_to_table(
         >>> fit = fit_fmbrdf_to_table(read_merl("blue-acrylic.binary"))  # doctest: +SKIP
         >>> fit.params.alpha, fit.log_rmse  # doctest: +SKIP
     """
+    from scipy.optimize import least_squares
     t0 = time.perf_counter()
     samples = table_samples(table, n_samples=n_samples, seed=seed, channels=channels)
     n_ch = samples.values.shape[0]

@@ -50,7 +50,6 @@ from typing import Any, Protocol
 
 import numpy as np
 import torch
-from scipy.optimize import least_squares
 from torch import Tensor
 
 from polarshape.brdf.params import FMBRDFParams
@@ -333,6 +332,7 @@ def _fit_shape(model: str, normals: Tensor, obs: Observations, start: dict[str, 
                delta: float) -> dict[str, float]:
     """Shape parameters (all but the albedos) of a baseline by bounded robust least squares, albedos
     solved inside; started from the best of three roughness values around ``start``."""
+    from scipy.optimize import least_squares  # ~0.6 s to import: only when a baseline is fitted
     bounds = {k: v for k, v in model_parameter_bounds(model).items() if not k.startswith("k_")}
     names = list(bounds)
     lo = np.array([bounds[k][0] for k in names])

@@ -15,17 +15,21 @@ surface in the input precision, so their hit points and normals are analytic, no
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
-import trimesh
 from torch import Tensor
 
 from polarshape.checks import to_numpy
+
+if TYPE_CHECKING:  # trimesh (~1 s to import, networkx with it) is imported where a mesh is made or read
+    import trimesh
 
 logger = logging.getLogger(__name__)
 
@@ -266,7 +270,6 @@ class MeshShape(Shape):
         lo, hi = mesh.bounds
         self.center = tuple(float(v) for v in 0.5 * (lo + hi))
         self.bounding_radius = float(np.linalg.norm(mesh.vertices - np.asarray(self.center), axis=1).max())
-        self._caster = _Open3DRaycaster(mesh.vertices, mesh.faces)
         self._faces = np.asarray(mesh.faces, dtype=np.int64)
         self._face_normals = np.asarray(mesh.face_normals, dtype=np.float64)
         self._vertex_normals = np.asarray(mesh.vertex_normals, dtype=np.float64)
@@ -283,6 +286,7 @@ class MeshShape(Shape):
     ) -> MeshShape:
         """Load a mesh file and place it: ``x_camera = R (scale · x_file) + translation`` with
         ``R = Rz Ry Rx`` from ``rotation_deg``. Raises ValueError naming the file on failure."""
+        import trimesh
         try:
             mesh = trimesh.load(path, force="mesh")
         except Exception as exc:  # trimesh raises a variety of exceptions for unreadable files
@@ -294,6 +298,12 @@ class MeshShape(Shape):
         transform[:3, 3] = _as_vec3(translation, "translation")
         mesh.apply_transform(transform)
         return cls(mesh, smooth=smooth)
+
+    @functools.cached_property
+    def _caster(self) -> _Open3DRaycaster:
+        # built at the first ray cast, not here: a shape whose rays are never cast (the convex test of
+        # polarshape.surface.interreflection) pays neither the scene nor open3d's import
+        return _Open3DRaycaster(self.mesh.vertices, self.mesh.faces)
 
     def _normals_at(self, prim: np.ndarray, uvs: np.ndarray) -> np.ndarray:
         if not self.smooth:
@@ -407,6 +417,7 @@ class BlobShape(_ImplicitMeshShape):
         seed: int = 2,
         subdivisions: int = 6,
     ) -> None:
+        import trimesh
         if not radius > 0:
             raise ValueError(f"blob radius must be > 0 metres, got {radius}")
         if not 0 <= amplitude < 0.5:
@@ -507,6 +518,7 @@ class TorusShape(_ImplicitMeshShape):
 
 def _torus_mesh(major_radius: float, minor_radius: float, major_sections: int, minor_sections: int) -> trimesh.Trimesh:
     """A closed, outward-wound torus about the z axis (a periodic grid: no seam)."""
+    import trimesh
     u = np.arange(major_sections) * (2 * np.pi / major_sections)  # around the axis
     v = np.arange(minor_sections) * (2 * np.pi / minor_sections)  # around the tube
     uu, vv = np.meshgrid(u, v, indexing="ij")  # (U, V)
@@ -532,6 +544,7 @@ def crater_mesh(center: Sequence[float], radius: float, depth: float, half_width
     ``z = center_z + depth · (1 − (ρ / radius)²)²``, whose slope is zero at the rim and at the bottom
     (a smooth surface, C¹). Vertices on a ``resolution × resolution`` grid, metres, camera frame.
     """
+    import trimesh
     cx, cy, cz = _as_vec3(center, "center")
     if not (radius > 0 and depth > 0 and half_width > radius):
         raise ValueError(f"crater needs radius > 0, depth > 0 and half_width > radius; got {radius}, {depth}, {half_width}")

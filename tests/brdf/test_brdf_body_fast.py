@@ -19,6 +19,7 @@ from polarshape.brdf.body_fast import (
     kernel_cosine_rule,
 )
 from polarshape.brdf.distribution import d_normalisation
+from polarshape.brdf.smith import clear_smith_cache
 
 
 def _material(kappa: float, requires_grad: bool = False) -> tuple[torch.Tensor, ...]:
@@ -209,3 +210,39 @@ def test_cached_facet_side_gives_the_table_built_afresh(kappa: float) -> None:
     assert not torch.equal(shared[0], shared[3])  # μ moved the table: the cache did not hand back μ 1.5's side
     assert clear_facet_cache() >= 1
 
+
+
+def test_cached_kappa_zero_geometry_is_not_reused_for_another_layout() -> None:
+    """κ = 0 keeps the facet geometry by layout, not μ: builds on other layouts (α, β placing the nodes)
+    and other μ after one another each give the table built with empty caches — a geometry reused for
+    another layout, or a Smith Φ for another grid, would change them."""
+    builds = [dict(ior=1.5, alpha=0.25, beta=2.0, layout=(0.25, 2.0, 0.0)),
+              dict(ior=1.5, alpha=0.26, beta=2.0, layout=(0.26, 2.0, 0.0)),  # another layout, same μ
+              dict(ior=1.5, alpha=0.25, beta=2.4, layout=(0.25, 2.4, 0.0)),
+              dict(ior=1.55, alpha=0.26, beta=2.0, layout=(0.26, 2.0, 0.0)),  # a cached layout, a new μ
+              dict(ior=1.5, alpha=0.25, beta=2.0, layout=(0.25, 2.0, 0.0), n_grid=33)]  # another grid
+    clear_facet_cache()
+    clear_smith_cache()
+    shared = [build_tables(kappa=0.0, **b) for b in builds]
+    for b, tables in zip(builds, shared):
+        clear_facet_cache()
+        clear_smith_cache()
+        fresh = build_tables(kappa=0.0, **b)
+        assert torch.equal(tables.body.values, fresh.body.values), b
+        assert torch.equal(tables.smith.excess, fresh.smith.excess), b
+    assert not torch.equal(shared[0].body.values, shared[1].body.values)
+
+
+def test_kappa_zero_gradient_with_a_cached_geometry() -> None:
+    """μ with autograd history skips the facet-side cache but uses the κ = 0 geometry (constants): the
+    gradient is the one of a build with empty caches."""
+    grads = []
+    for clear in (True, False):
+        if clear:
+            clear_facet_cache()
+        mu = torch.tensor(1.5, dtype=torch.float64, requires_grad=True)
+        tables = build_tables(ior=mu, alpha=0.25, beta=2.0, kappa=0.0, n_grid=17)
+        tables.body.values.sum().backward()
+        grads.append(mu.grad)
+    assert float(grads[0].abs()) > 0
+    torch.testing.assert_close(grads[1], grads[0], rtol=1e-13, atol=0.0)

@@ -3,13 +3,15 @@
 from __future__ import annotations
 
 import re
+from dataclasses import replace
 
 import pytest
 import torch
 
 from polarshape.brdf import fmbrdf_stokes
+from polarshape.brdf.params import FMBRDFParams
 from polarshape.metrics import angular_error_deg
-from polarshape.recover.coarse_to_fine import build_pyramid, solve_fmbrdf, upsample_normals
+from polarshape.recover.coarse_to_fine import TableCache, build_pyramid, solve_fmbrdf, upsample_normals
 from polarshape.recover.observations import RecoveryInputs
 from polarshape.recover.options import RecoveryOptions
 
@@ -135,3 +137,37 @@ def test_extrapolation_shortens_a_crawling_alternation(monkeypatch: pytest.Monke
     assert plain[3] == 0 and fast[3] >= 1, runs
     assert fast[0] < plain[0] or fast[1] < plain[1], runs
     assert fast[2] <= plain[2] + 0.02, runs
+
+
+def test_table_cache_hands_back_the_same_tables_and_keeps_the_latest() -> None:
+    cache = TableCache(most=2)
+    a, b, c = (FMBRDFParams(ior=1.5, alpha=x, beta=2.0, kappa=0.0) for x in (0.2, 0.3, 0.4))
+    first = cache.get(a, "cpu")
+    assert cache.get(replace(a, k_s=3.0, k_b=0.1), "cpu") is first  # albedos are not part of a table
+    assert cache.get(a, "cpu", n_grid=33) is not first
+    cache.get(b, "cpu")  # a at 65 was used before a at 33: it goes first
+    assert len(cache) == 2 and (cache.builds, cache.hits) == (3, 1)
+    assert cache.get(b, "cpu") is not None and cache.builds == 3
+    assert cache.get(a, "cpu") is not first and cache.builds == 4  # evicted: built again
+    cache.get(c, "cpu")
+    assert len(cache) == 2
+    with pytest.raises(ValueError, match="most"):
+        TableCache(most=0)
+
+
+def test_the_finer_levels_take_the_coarse_level_s_tables() -> None:
+    """The finer levels' material is the coarse level's last one: its tables are built once, and the
+    solve leaves them in the run's cache (the materials selection and the render take them there)."""
+    inputs, truth = _sphere_inputs(32)
+    start = torch.where(inputs.mask[..., None], truth, torch.tensor([0.0, 0.0, -1.0], dtype=torch.float64))
+    options = RecoveryOptions(model="fmbrdf", fit_kappa=False, max_outer_iterations=3, subsample_pixels=64)
+    assert len(build_pyramid(inputs, options)) >= 2
+    tables = TableCache()
+    state, _ = solve_fmbrdf(inputs, start, options, tables=tables)
+    hits, builds = tables.hits, tables.builds
+    assert hits >= len(build_pyramid(inputs, options)) - 1, hits  # one hit per finer level at least
+    tables.get(state.params, inputs.stokes.device)
+    assert (tables.hits, tables.builds) == (hits + 1, builds)
+    again, _ = solve_fmbrdf(inputs, start, options)  # tables of its own: the same answer
+    assert again.params == state.params
+    assert torch.equal(torch.nan_to_num(again.normals), torch.nan_to_num(state.normals))

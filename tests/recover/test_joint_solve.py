@@ -208,6 +208,7 @@ def test_settled_stops_only_a_fast_descent_below_its_tolerance() -> None:
         return [{"rel_change": r} for r in rel]
 
     assert not stop(1.0, h(5e-4))  # one iteration: no rate yet
+    assert stop(1.0, h(5e-5))  # one iteration below a tenth of 0.1 %: it started where it had settled
     assert stop(1.0, h(0.1, 7e-4))  # below 0.1 % and 140× smaller than the change before
     assert not stop(1.0, h(2e-3, 7e-4))  # below 0.1 % but crawling (ρ 0.35): the rest may be large
     assert not stop(1.0, h(0.2, 0.015))  # fast, but the change itself above 0.1 %
@@ -243,3 +244,39 @@ def test_kappa_is_dropped_on_a_shiny_kappa_free_sphere() -> None:
     result = _recover(_simulate("sphere", 40, 0.03, exposure_us=1000.0), solver="joint")
     said = [s for s in result.skipped if "kappa:" in s]
     assert result.params["kappa"] == 0.0 and len(said) == 1 and "nested" in said[0], result.skipped
+
+
+@pytest.mark.slow
+def test_nested_kappa_second_start_stops_once_its_gain_clearly_ends_below_the_decision(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    # κ-free data; the κ = 0 solve came from far (α ×4: cornered) and κ does not pay from its optimum, so
+    # the κ fit starts again from there. That second start stays above the optimum's loss: with the
+    # decision's gain given it stops as soon as it clearly ends below it — fewer iterations (table
+    # builds), and the same fit, gain and (dropped) decision as run to its end
+    import polarshape.recover.joint_solve as js
+
+    inputs, truth = _sphere_inputs(10)
+    m = inputs.mask
+    obs = flatten_observations(inputs, m)
+    kw = {"delta": 1e-3, "n_grid": 33, "jac_grid": 17}
+    far = FMBRDFParams(ior=1.5, alpha=1.2, beta=2.0)
+    base = joint_solve(truth[m], obs, FMBRDFParams(ior=1.5, alpha=0.3, beta=2.0), names=("ior", "alpha", "beta"),
+                       max_iter=3, **kw)
+    base = replace(base, start_params=far)
+    solve = js.joint_solve
+    out = {}
+    for decide in (None, 0.25):
+        iterations: list[int] = []
+
+        def counted(*args: object, **kwargs: object) -> js.JointResult:
+            fit = solve(*args, **kwargs)  # type: ignore[arg-type]
+            iterations.append(fit.iterations)
+            return fit
+
+        monkeypatch.setattr(js, "joint_solve", counted)
+        fit, gain = nested_kappa(base, obs, names=("ior", "alpha", "beta"), max_iter=20, decide_gain=decide, **kw)
+        out[decide] = (iterations, fit.loss, fit.params.kappa, gain)
+    (runs, loss, kappa, gain), (runs_stop, loss_stop, kappa_stop, gain_stop) = out[None], out[0.25]
+    assert len(runs) == len(runs_stop) == 2, out  # the second start ran in both
+    assert runs_stop[1] < runs[1], out
+    assert (loss_stop, kappa_stop, gain_stop) == (loss, kappa, gain) and gain < 0.25, out

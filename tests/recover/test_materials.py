@@ -11,7 +11,8 @@ import torch
 
 from polarshape.brdf import baek_pbrdf_stokes, fmbrdf_stokes
 from polarshape.brdf.params import FMBRDFParams
-from polarshape.recover.coarse_to_fine import solve_fmbrdf
+import polarshape.recover.materials as materials_module
+from polarshape.recover.coarse_to_fine import FMBRDFState, TableCache, solve_fmbrdf
 from polarshape.recover.materials import (
     MIN_HELD_OUT_GAIN, boundary_pixels, material_tables, pixel_losses, potts_energy, potts_icm, region_inputs,
     select_materials, solve_materials,
@@ -174,13 +175,30 @@ def test_a_material_the_model_does_not_explain_stays_one() -> None:
 def test_material_tables_are_built_once_per_material() -> None:
     inputs, normals, _ = _cap_inputs(8, (ROUGH,), noise=1e-4)
     obs = flatten_observations(inputs, inputs.mask)
-    cache: dict = {}
+    cache = TableCache()
     first = material_tables(ROUGH, torch.device("cpu"), cache)
     assert material_tables(ROUGH, torch.device("cpu"), cache) is first
     assert material_tables(FMBRDFParams(**{**ROUGH.as_kwargs(), "k_s": 3.0}), torch.device("cpu"), cache) is first
     assert material_tables(ROUGH, torch.device("cpu"), cache, n_grid=33) is not first
     assert material_tables(GLOSSY, torch.device("cpu"), cache) is not first
-    assert len(cache) == 3
+    assert len(cache) == 3 and cache.builds == 3 and cache.hits == 2
     kw = {"per_pixel_albedo": True, "polarised": True, "delta": 0.01}
     assert torch.equal(pixel_losses([ROUGH, GLOSSY], normals[inputs.mask], obs, cache=cache, **kw),
                        pixel_losses([ROUGH, GLOSSY], normals[inputs.mask], obs, **kw))
+
+
+
+def test_the_selection_takes_the_solve_s_tables_and_decides_as_without_them() -> None:
+    """The one-material solve leaves its material's tables in the run's cache: the model choice builds
+    them no more (only its start lobes and new materials) and decides, bit for bit, as with tables
+    of its own."""
+    inputs, normals, _ = _cap_inputs(12, (ROUGH,), noise=2e-4)
+    options = RecoveryOptions(max_outer_iterations=3, subsample_pixels=64, fit_kappa=False)
+    tables = TableCache()
+    state, _ = solve_fmbrdf(inputs, _start(normals), options, tables=tables)
+    builds = tables.builds
+    shared = select_materials(inputs, state, options, wanted=None, tables=tables)
+    own = select_materials(inputs, state, options, wanted=None)
+    assert shared == own and shared[1], shared[1]
+    assert shared[1][0]["decided"] == "early", shared[1]  # no new material: no table built for the run
+    assert tables.builds == builds and tables.hits >= 2, (tables.builds, builds, tables.hits)
