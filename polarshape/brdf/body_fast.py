@@ -35,13 +35,13 @@ plane of N and V where the exit transmission dominates (spec §5, §7).
 from __future__ import annotations
 
 import math
-from collections import OrderedDict
 from dataclasses import dataclass, field
 
 import numpy as np
 import torch
 from torch import Tensor
 
+from polarshape.brdf.cache import BoundedCache
 from polarshape.brdf.distribution import d_shape
 from polarshape.brdf.fresnel import fresnel
 from polarshape.brdf.geometry import (
@@ -272,6 +272,11 @@ def _mirrored(half: Tensor, odd: int) -> Tensor:
     return torch.cat([half[..., odd:].flip(-1), half], dim=-1)
 
 
+#: The largest entry of the facet, geometry and kernel caches below (elements).
+FACET_CACHE_MAX_ELEMENTS = 1 << 21
+#: Entries of each cache below.
+GEOMETRY_CACHE_ENTRIES, FACET_CACHE_ENTRIES, KERNEL_CACHE_ENTRIES = 4, 4, 2
+
 #: The κ = 0 facet geometry (:class:`_SeparableGeometry`) of the last few layouts, by everything it
 #: depends on: the layout (α, β, κ that place the nodes), the rules, dtype and device — not μ, not
 #: α, β themselves. A μ change on a frozen layout (a fit's μ difference; the next iteration's
@@ -279,17 +284,16 @@ def _mirrored(half: Tensor, odd: int) -> Tensor:
 #: weighted sums. Constants only (no autograd history), so kept whether or not μ requires grad;
 #: ≈ 2.5·G·Q·n elements (κ = 0: 4–7 MB in float64) and at most
 #: :data:`FACET_CACHE_MAX_ELEMENTS` each. Emptied by :func:`clear_facet_cache`.
-_GEOMETRY_CACHE: OrderedDict[tuple, _SeparableGeometry] = OrderedDict()
-GEOMETRY_CACHE_ENTRIES = 4
+_GEOMETRY_CACHE: BoundedCache[_SeparableGeometry] = BoundedCache(GEOMETRY_CACHE_ENTRIES, FACET_CACHE_MAX_ELEMENTS)
 
 
 def _separable_geometry(key: tuple, sq: Tensor, cq: Tensor, tg: Tensor, tq_np: np.ndarray, tg_np: np.ndarray,
                         n: int, rows: int) -> _SeparableGeometry:
     """The :class:`_SeparableGeometry` of a layout (``key``; facet nodes tq_np (Q,), grid tg_np (G,), n arc
     nodes), from :data:`_GEOMETRY_CACHE` when it has it; blocks of at most ``rows`` rows."""
-    if key in _GEOMETRY_CACHE:
-        _GEOMETRY_CACHE.move_to_end(key)
-        return _GEOMETRY_CACHE[key]
+    cached = _GEOMETRY_CACHE.get(key)
+    if cached is not None:
+        return cached
     half = n // 2
     x, w = (torch.tensor(v[half:], dtype=sq.dtype, device=sq.device) for v in gauss_legendre(n))  # φ ≥ 0 (a copy: read-only)
     phic = torch.as_tensor(arc_half_width(tq_np, tg_np), dtype=sq.dtype, device=sq.device)[..., None]  # (G, Q, 1)
@@ -302,11 +306,7 @@ def _separable_geometry(key: tuple, sq: Tensor, cq: Tensor, tg: Tensor, tq_np: n
         blocks.append((cos_o, base, _mirrored(double_angle_of(ax, n_y)[0], n % 2)))
         areas.append(base.sum(-1))
     geo = _SeparableGeometry(tuple(blocks), n % 2, torch.cat(areas))
-    if geo.numel() <= FACET_CACHE_MAX_ELEMENTS:
-        _GEOMETRY_CACHE[key] = geo
-        while len(_GEOMETRY_CACHE) > GEOMETRY_CACHE_ENTRIES:
-            _GEOMETRY_CACHE.popitem(last=False)
-    return geo
+    return _GEOMETRY_CACHE.put(key, geo, geo.numel())
 
 
 def _separable_modes(geo: _SeparableGeometry, ior: Tensor) -> Tensor:
@@ -329,28 +329,21 @@ def _separable_modes(geo: _SeparableGeometry, ior: Tensor) -> Tensor:
 #: the facet side. Only μ without autograd history is cached, and only sides of at most
 #: :data:`FACET_CACHE_MAX_ELEMENTS` elements (3·M·G·Q: κ = 0 3·65·Q; at G = 65, Q ≤ 156 up to
 #: M = 68 modes, κ ≈ 150 at α ≥ 0.3: the κ 50 layouts, 1.2 M elements = 10 MB, are kept).
-_FACET_CACHE: OrderedDict[tuple, tuple[Tensor, Tensor]] = OrderedDict()
-FACET_CACHE_ENTRIES = 4
-FACET_CACHE_MAX_ELEMENTS = 1 << 21
+_FACET_CACHE: BoundedCache[tuple[Tensor, Tensor]] = BoundedCache(FACET_CACHE_ENTRIES, FACET_CACHE_MAX_ELEMENTS)
 
 
 #: The correlation kernels k_m (M, Q, Q) of the last few κ > 0 builds (:func:`_kernel_side`), by κ's
 #: value and what places the θ nodes: a fit's finite differences in μ, α, β leave κ, and so the kernel,
 #: unchanged (at κ 100 it is half of such a build). Only κ without autograd history is cached, and
 #: only kernels of at most :data:`FACET_CACHE_MAX_ELEMENTS` elements (κ 100, α 0.3: 56·156² = 1.4 M).
-_KERNEL_CACHE: OrderedDict[tuple, Tensor] = OrderedDict()
-KERNEL_CACHE_ENTRIES = 2
+_KERNEL_CACHE: BoundedCache[Tensor] = BoundedCache(KERNEL_CACHE_ENTRIES, FACET_CACHE_MAX_ELEMENTS)
 
 
 def clear_facet_cache() -> int:
     """Empty the facet-side caches of :func:`build_body_table` (:data:`_FACET_CACHE` and the κ = 0
     geometry, :data:`_GEOMETRY_CACHE`) and the κ > 0 kernels (:data:`_KERNEL_CACHE`): their memory
     back; the tables do not change. Returns how many entries they held."""
-    n = len(_FACET_CACHE) + len(_GEOMETRY_CACHE) + len(_KERNEL_CACHE)
-    _FACET_CACHE.clear()
-    _GEOMETRY_CACHE.clear()
-    _KERNEL_CACHE.clear()
-    return n
+    return _FACET_CACHE.clear() + _GEOMETRY_CACHE.clear() + _KERNEL_CACHE.clear()
 
 
 def _facet_side(key: tuple, sq: Tensor, cq: Tensor, tg: Tensor, tq_np: np.ndarray, tg_np: np.ndarray, n_phi: int,
@@ -359,9 +352,9 @@ def _facet_side(key: tuple, sq: Tensor, cq: Tensor, tg: Tensor, tq_np: np.ndarra
     area_q (G, Q); from :data:`_FACET_CACHE` when it has ``key`` and μ carries no autograd history.
     tq_np (Q,), tg_np (G,): the facet nodes and the grid; n_phi: nodes per arc (:func:`arc_nodes`)."""
     cacheable = not ior.requires_grad
-    if cacheable and key in _FACET_CACHE:
-        _FACET_CACHE.move_to_end(key)
-        return _FACET_CACHE[key]
+    cached = _FACET_CACHE.get(key) if cacheable else None
+    if cached is not None:
+        return cached
 
     if n_modes == 1:  # κ = 0: the geometry (by layout: the key without μ) and Fresnel
         geo = _separable_geometry(key[1:], sq, cq, tg, tq_np, tg_np, n_phi, rows)
@@ -378,11 +371,7 @@ def _facet_side(key: tuple, sq: Tensor, cq: Tensor, tg: Tensor, tq_np: np.ndarra
             for g0 in range(0, tg.numel(), rows)
         ]
         side = torch.cat([hm for hm, _ in parts], dim=2), torch.cat([ar for _, ar in parts])
-    if cacheable and side[0].numel() <= FACET_CACHE_MAX_ELEMENTS:
-        _FACET_CACHE[key] = side
-        while len(_FACET_CACHE) > FACET_CACHE_ENTRIES:
-            _FACET_CACHE.popitem(last=False)
-    return side
+    return _FACET_CACHE.put(key, side, side[0].numel()) if cacheable else side
 
 
 def kernel_cosine_rule(
@@ -442,9 +431,9 @@ def _kernel_side(key: tuple, cq: Tensor, sq: Tensor, kappa: Tensor, n_modes: int
     time (each from its diagonal on: :func:`_symmetric_rows`); from :data:`_KERNEL_CACHE` when it has
     ``key`` and κ carries no autograd history."""
     cacheable = not kappa.requires_grad
-    if cacheable and key in _KERNEL_CACHE:
-        _KERNEL_CACHE.move_to_end(key)
-        return _KERNEL_CACHE[key]
+    cached = _KERNEL_CACHE.get(key) if cacheable else None
+    if cached is not None:
+        return cached
     cos_psi, basis = kernel_cosine_rule(n_modes, 2 * n_modes + 64, cq.dtype, cq.device)  # (P/2+1,), (P/2+1, M)
     n_q = cq.numel()
     q_rows = max(1, chunk_elements // (n_q * cos_psi.numel()))
@@ -452,11 +441,7 @@ def _kernel_side(key: tuple, cq: Tensor, sq: Tensor, kappa: Tensor, n_modes: int
         _kernel_modes(cq[q0 : q0 + q_rows], sq[q0 : q0 + q_rows], cq[q0:], sq[q0:], cos_psi, basis, kappa)
         for q0 in range(0, n_q, q_rows)
     ])
-    if cacheable and k_m.numel() <= FACET_CACHE_MAX_ELEMENTS:
-        _KERNEL_CACHE[key] = k_m
-        while len(_KERNEL_CACHE) > KERNEL_CACHE_ENTRIES:
-            _KERNEL_CACHE.popitem(last=False)
-    return k_m
+    return _KERNEL_CACHE.put(key, k_m, k_m.numel()) if cacheable else k_m
 
 
 def build_body_table(

@@ -60,6 +60,8 @@ class FMBRDFParams:
         r_k = self.k_b / self.k_s if self.k_s > 0 else math.inf
         return {**self.as_kwargs(), "r_k": r_k}
 
-    def build_tables(self, device: torch.device | str | None = None) -> FMBRDFTables:
-        """The fast evaluator's tables of this material's (μ, α, β, κ) (see :func:`polarshape.brdf.build_tables`)."""
-        return build_tables(ior=self.ior, alpha=self.alpha, beta=self.beta, kappa=self.kappa, device=device)
+    def build_tables(self, device: torch.device | str | None = None, n_grid: int = 65) -> FMBRDFTables:
+        """The fast evaluator's tables of this material's (μ, α, β, κ) at body grid ``n_grid`` (see
+        :func:`polarshape.brdf.build_tables`)."""
+        return build_tables(ior=self.ior, alpha=self.alpha, beta=self.beta, kappa=self.kappa, device=device,
+                            n_grid=n_grid)

@@ -20,12 +20,12 @@ frozen layout rebuild a table as one weighted sum.
 from __future__ import annotations
 
 import math
-from collections import OrderedDict
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
+from polarshape.brdf.cache import BoundedCache
 from polarshape.brdf.distribution import d_shape
 from polarshape.brdf.geometry import tiny
 from polarshape.brdf.quadrature import BLOCK_ELEMENTS, HALF_PI, ThetaWarp, composite_rule, theta_breaks
@@ -145,28 +145,27 @@ class _SmithLayout:
     phi: tuple[Tensor, ...]
 
 
+SMITH_CACHE_ENTRIES = 4
+
 #: The layouts of the last few Smith tables (:func:`build_smith_table`), by everything they depend on:
 #: the layout (α, β), the grid size, the nodes per panel, dtype and device — not α, β themselves, not
 #: μ. A fit's finite differences in μ, α and β on a frozen layout then cost one weighted sum each.
 #: Constants only (no autograd history): Φ depends on no parameter. ≤ 2·513·330 float64 per entry.
-_SMITH_CACHE: OrderedDict[tuple, _SmithLayout] = OrderedDict()
-SMITH_CACHE_ENTRIES = 4
+_SMITH_CACHE: BoundedCache[_SmithLayout] = BoundedCache(SMITH_CACHE_ENTRIES)
 
 
 def clear_smith_cache() -> int:
     """Empty the layout cache of :func:`build_smith_table` (its memory back; the tables do not change);
     returns how many entries it held."""
-    n = len(_SMITH_CACHE)
-    _SMITH_CACHE.clear()
-    return n
+    return _SMITH_CACHE.clear()
 
 
 def _smith_layout(la: float, lb: float, n_grid: int, n: int, dtype: torch.dtype, device: torch.device) -> _SmithLayout:
     """The :class:`_SmithLayout` of a table placed at (α, β) = (la, lb), from :data:`_SMITH_CACHE` when it has it."""
     key = (la, lb, n_grid, n, dtype, str(device))
-    if key in _SMITH_CACHE:
-        _SMITH_CACHE.move_to_end(key)
-        return _SMITH_CACHE[key]
+    cached = _SMITH_CACHE.get(key)
+    if cached is not None:
+        return cached
     warp = smith_warp(la)
     grid = torch.as_tensor(warp.nodes(n_grid), dtype=dtype, device=device)
     nodes, weights = composite_rule(theta_breaks(la, lb, max_width=0.05), n)
@@ -174,11 +173,7 @@ def _smith_layout(la: float, lb: float, n_grid: int, n: int, dtype: torch.dtype,
     w = torch.as_tensor(weights, dtype=dtype, device=device)
     rows = max(1, BLOCK_ELEMENTS // th.numel())
     phi = tuple(_azimuthal_on_nodes(grid[g0 : g0 + rows], th) for g0 in range(0, grid.numel(), rows))
-    lay = _SmithLayout(warp=warp, cos_grid=torch.cos(grid), th=th, w=w, phi=phi)
-    _SMITH_CACHE[key] = lay
-    while len(_SMITH_CACHE) > SMITH_CACHE_ENTRIES:
-        _SMITH_CACHE.popitem(last=False)
-    return lay
+    return _SMITH_CACHE.put(key, _SmithLayout(warp=warp, cos_grid=torch.cos(grid), th=th, w=w, phi=phi))
 
 
 def build_smith_table(

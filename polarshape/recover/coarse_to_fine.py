@@ -50,7 +50,6 @@ from __future__ import annotations
 import logging
 import math
 import time
-from collections import OrderedDict
 from dataclasses import dataclass, field, replace
 from typing import Literal
 
@@ -59,6 +58,7 @@ import torch.nn.functional as F
 from torch import Tensor
 from tqdm.auto import tqdm
 
+from polarshape.brdf.cache import BoundedCache
 from polarshape.brdf.fmbrdf import FMBRDFTables, build_tables
 from polarshape.brdf.params import FMBRDFParams
 from polarshape.recover.joint_solve import (
@@ -126,28 +126,22 @@ class TableCache:
         self.most = most
         self.builds = 0
         self.hits = 0
-        self._tables: OrderedDict[tuple, FMBRDFTables] = OrderedDict()
+        self._tables: BoundedCache[FMBRDFTables] = BoundedCache(most)
 
     def __len__(self) -> int:
         return len(self._tables)
 
     def get(self, params: FMBRDFParams, device: torch.device | str, n_grid: int = 65) -> FMBRDFTables:
         """The tables of ``params``' (μ, α, β, κ) at ``n_grid`` on ``device`` (built on a miss:
-        :func:`polarshape.brdf.build_tables`; the albedos k_s, k_b are not part of a table)."""
+        :meth:`FMBRDFParams.build_tables`; the albedos k_s, k_b are not part of a table)."""
         key = (float(params.ior), float(params.alpha), float(params.beta), float(params.kappa), int(n_grid),
                str(torch.device(device)))
         tables = self._tables.get(key)
         if tables is not None:
             self.hits += 1
-            self._tables.move_to_end(key)
             return tables
-        tables = build_tables(ior=params.ior, alpha=params.alpha, beta=params.beta, kappa=params.kappa,
-                              device=device, n_grid=n_grid)
         self.builds += 1
-        self._tables[key] = tables
-        while len(self._tables) > self.most:
-            self._tables.popitem(last=False)
-        return tables
+        return self._tables.put(key, params.build_tables(device=device, n_grid=n_grid))
 
 
 @dataclass(frozen=True)
