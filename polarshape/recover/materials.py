@@ -147,7 +147,7 @@ def material_tables(p: FMBRDFParams, device: torch.device, cache: TableCache | N
     by (μ, α, β, κ, n_grid)) when one is given: the model choice scores the same materials many
     times, the one-material solve has built the first one, and building tables is most of the
     model choice's cost on a one-material object."""
-    return (TableCache(1) if cache is None else cache).get(p, device, n_grid)
+    return p.build_tables(device=device, n_grid=n_grid) if cache is None else cache.get(p, device, n_grid)
 
 
 def pixel_losses(materials: list[FMBRDFParams], normals: Tensor, obs: Observations, *, per_pixel_albedo: bool,
