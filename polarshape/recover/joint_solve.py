@@ -291,6 +291,28 @@ def _start(model: _Model, vals: dict[str, float], n: Tensor) -> _State:
     return _state(model, vals, n, model.problem(st.problem.tables, vals))  # the albedos need no new tables
 
 
+def _project_linear(model: _Model, st: _State) -> _State:
+    """The state with the linear globals (k_s; a global k_b) moved to their closed-form optimum under the
+    current IRLS weights (variable projection), kept only where that lowers the loss.
+
+    The LM step of a linear global is capped relative to its value (:func:`_max_step`): from the α grid's
+    k_s = 0 start it grows only ×1.5 per iteration, and on the 256² α 0.03 spheres it took 17 of 20
+    iterations to reach the k_s of the data. The closed form reuses the rendered parts (no table build,
+    no render): one reduction per accepted step."""
+    w = irls_weights(st.problem, st.r)  # (P, K, 3)
+    k_s, k_b = solve_albedos(st.surf, st.body, model.obs, per_pixel=model.per_pixel, polarised=model.polarised,
+                             robust_weight=w)
+    if model.per_pixel:
+        vals = {**st.vals, "k_s": float(k_s)}
+    else:
+        k_s_host, k_b_host = torch.stack([k_s.reshape(()), k_b[0]]).tolist()  # two numbers: one host sync
+        vals = {**st.vals, "k_s": k_s_host, "k_b": k_b_host}
+    problem = model.problem(st.problem.tables, vals)  # the albedos need no new tables
+    r, k_b_pp = problem.residual_of_parts(st.surf, st.body, model.obs)
+    trial = _State(vals, problem, st.n, st.surf, st.body, r, k_b_pp, problem.loss(r))
+    return trial if bool(trial.loss_pp.sum() < st.loss_pp.sum()) else st
+
+
 def _jacobians(model: _Model, st: _State, step_h: float) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Forward-difference Jacobians of the flat residuals (P, M): normals (P, M, 2), globals (P, M, G),
     and the tangent basis (t1, t2) of the normal steps."""
@@ -423,6 +445,7 @@ def joint_solve(normals: Tensor, obs: Observations, params: FMBRDFParams, *, nam
                     pinned_names = [fitted[i] for i in pinned]
                     lam_g = max(lam_g / 3, 1e-7)
                     lam_n = torch.where(keep_new, (lam_n / 3).clamp_min(1e-7), (lam_n * 4).clamp_max(1e7))
+                    st = _project_linear(model, st)
                     st, jumped = _try_highlights(model, st, cand)
                     lam_n = torch.where(jumped, torch.full_like(lam_n, 1e-3), lam_n)
                     total_j, n_jumped = torch.stack([_mean(st.loss_pp, obs).double(), jumped.double().sum()]).tolist()

@@ -79,6 +79,21 @@ def test_joint_solve_recovers_material_and_normals_and_converges() -> None:
     assert 0.2 < fit.history[0]["rho"][-1] < 3.0, fit.history[0]
 
 
+def test_joint_solve_reaches_a_far_specular_albedo_at_once() -> None:
+    # a start lobe far too narrow (α 0.05 for 0.3) gives a closed-form k_s 19× too small; the LM's step on
+    # k_s is capped relative to its value (×1.5 per iteration), so without the closed-form projection of
+    # the linear globals after each step this took 16 iterations, most of them growing k_s
+    inputs, truth = _sphere_inputs(16, alpha=0.3)
+    m = inputs.mask
+    obs = flatten_observations(inputs, m)
+    fit = joint_solve(truth[m], obs, FMBRDFParams(ior=1.5, alpha=0.05, beta=2.0, k_s=0.0),
+                      names=("ior", "alpha", "beta"), delta=3e-3, max_iter=20, tol=1e-5)
+    assert fit.history[0]["k_s"] > 0.5, fit.history[0]  # not 0.08 (×1.5 from the start's 0.053)
+    assert fit.converged and fit.iterations <= 10, (fit.iterations, [h["k_s"] for h in fit.history])
+    assert abs(fit.params.k_s - 1.0) < 1e-3 and abs(fit.params.alpha - 0.3) < 1e-3, fit.params
+    assert all(b["loss"] <= a["loss"] for a, b in zip(fit.history, fit.history[1:]))
+
+
 @pytest.mark.slow
 def test_joint_level_at_least_as_good_as_the_alternation() -> None:
     inputs, truth, start = _shiny_sphere()
