@@ -104,7 +104,9 @@ def test_fmbrdf_forward_and_gradients_match_the_cpu(device: str) -> None:
     v = torch.tensor([0.0, 0.0, -1.0], dtype=torch.float64).expand(64, 3)
 
     def forward(dev: str) -> tuple[torch.Tensor, list[torch.Tensor]]:
-        leaves = [n.to(dev).requires_grad_(), torch.tensor(0.3, dtype=torch.float64, device=dev, requires_grad=True),
+        # a fresh leaf per device: ``n.to("cpu")`` is ``n`` itself, and once the CPU pass made it require grad the
+        # CUDA copy would be a non-leaf whose .grad stays None (seen on an H200)
+        leaves = [n.detach().clone().to(dev).requires_grad_(), torch.tensor(0.3, dtype=torch.float64, device=dev, requires_grad=True),
                   torch.tensor(1.5, dtype=torch.float64, device=dev, requires_grad=True)]
         k_b = torch.full((64,), 0.5, dtype=torch.float64, device=dev, requires_grad=True)
         s = fmbrdf_stokes(leaves[0], l.to(dev), v.to(dev), ior=leaves[2], k_s=1.0, k_b=k_b, alpha=leaves[1],
