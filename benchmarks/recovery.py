@@ -15,7 +15,7 @@ errors and the error after each stage (history):
 
 Shared captures: ``--shared`` also runs ../shared/data/official_sphere128 and mitsuba_sphere_a020.
 
-Usage:  python benchmarks/recovery.py [--sizes 128 256 512] [--lights 4 8 12 24] [--threads 2]
+Usage:  python benchmarks/recovery.py [--sizes 128 256 512] [--lights 4 8 12 24] [--threads 2] [--solvers alternating joint]
                                       [--adam-budget 120] [--shared] [--out results.json]
 """
 
@@ -141,6 +141,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--adam-budget", type=float, default=60.0, help="seconds per Adam run (0 = skip Adam)")
     ap.add_argument("--shared", action="store_true", help="also run the captures in ../shared/data")
     ap.add_argument("--out", type=Path, default=None, help="write all results as JSON here")
+    ap.add_argument("--solvers", nargs="+", choices=["alternating", "joint"], default=None,
+                    help="recovery.solver of the polarshape rows, each in turn (default: the default solver)")
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
     print(f"# Recovery benchmark — {platform.processor() or platform.machine()}, torch {torch.__version__}, "
@@ -148,6 +150,16 @@ def main(argv: list[str] | None = None) -> int:
     print("| capture | K | method | wall (s) | mean normal error (°) | μ | α | β | stages (s) |")
     print("|---|---:|---|---:|---:|---:|---:|---:|---|")
     rows = []
+    solvers: list[str | None] = list(args.solvers or [None])
+
+    def fmbrdf_runs(capture: Capture, label: str | None, **options: object) -> list[dict]:
+        """The polarshape rows of ``capture``: one per solver of ``--solvers`` (named in the label when given)."""
+        out = []
+        for solver in solvers:
+            extra = {} if solver is None else {"solver": solver}
+            name = label if solver is None else f"{label or 'polarshape'} ({solver})"
+            out.append(run_polarshape(capture, "fmbrdf", name, **options, **extra))
+        return out
 
     def report(name: str, k: int, r: dict) -> None:
         p = r.get("params", {})
@@ -168,8 +180,9 @@ def main(argv: list[str] | None = None) -> int:
             if k < 3:
                 print(f"| {name} | {k} | – | – | fewer than 3 lights: refused | | | | |")
                 continue
-            for model in ("lambertian", "fmbrdf"):
-                report(name, k, run_polarshape(capture, model))
+            report(name, k, run_polarshape(capture, "lambertian"))
+            for r in fmbrdf_runs(capture, None):
+                report(name, k, r)
             if args.adam_budget > 0:
                 report(name, k, run_adam(capture, args.adam_steps, args.adam_alternations, args.adam_budget))
     if args.shared:
@@ -188,7 +201,10 @@ def main(argv: list[str] | None = None) -> int:
             else:
                 variants = [("lambertian", None, {}), ("fmbrdf", None, {}), ("fmbrdf", "polarshape, smoothness 0.5", {"smoothness": 0.5})]
             for model, label, options in variants:
-                report(folder, capture.num_lights, run_polarshape(capture, model, label, **options))
+                runs = fmbrdf_runs(capture, label, **options) if model == "fmbrdf" else [
+                    run_polarshape(capture, model, label, **options)]
+                for r in runs:
+                    report(folder, capture.num_lights, r)
     if args.out is not None:
         atomic_write_bytes(args.out, json.dumps(rows, indent=1, default=str).encode(), overwrite=True)
     return 0
