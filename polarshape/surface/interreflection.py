@@ -51,10 +51,10 @@ logger = logging.getLogger(__name__)
 __all__ = ["BounceEstimate", "estimate_one_bounce", "rays_may_meet_triangles", "surface_below_tangent_planes",
            "tangent_plane_open_points"]
 
-#: the tiles of :func:`surface_below_tangent_planes`, vertices per side, each size half the one before: every
+#: the tiles of :func:`tangent_plane_open_points`, vertices per side, each size half the one before: every
 #: point against every tile of the first size, then only the tiles not cleared, split in four
 _TILE_SIZES = (16, 8, 4, 2, 1)
-#: (point, tile) pairs bounded at once by :func:`surface_below_tangent_planes` (memory ∝ this)
+#: (point, tile) pairs bounded at once by :func:`tangent_plane_open_points` (memory ∝ this)
 _PAIRS_CHUNK = 1 << 18
 #: the ray caster's float32 rounding (origins, directions, vertices, its hit test: a few units in the last
 #: place of the largest coordinate), covered 64 times over: 2⁻¹⁸ of the largest coordinate
@@ -170,7 +170,8 @@ def _start_planes(points: Tensor, normals: Tensor, offset: float, scale: float) 
 
 
 def _coordinate_scale(vertices: Tensor, points: Tensor) -> float:
-    """The largest coordinate of the finite ``vertices`` (…, 3) and of ``points`` (P, 3): the float32 rounding's scale."""
+    """The largest coordinate of the finite ``vertices`` (…, 3) and of ``points`` (P, 3): the scale of the ray
+    caster's float32 rounding."""
     return max(float(torch.nan_to_num(vertices, nan=0.0).abs().max()), float(points.abs().max()))
 
 

@@ -249,7 +249,8 @@ def test_ray_triangle_test_keeps_every_hit_of_the_ray_caster() -> None:
                                                                                             dtype=torch.float64)
     directions = torch.nn.functional.normalize(torch.randn(4000, 3, generator=gen, dtype=torch.float64), dim=-1)
     scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(vertices.numpy().astype(np.float32)), o3d.core.Tensor(faces.numpy().astype(np.uint32)))
+    scene.add_triangles(o3d.core.Tensor(vertices.numpy().astype(np.float32)),
+                        o3d.core.Tensor(faces.numpy().astype(np.uint32)))
     out = scene.cast_rays(o3d.core.Tensor(torch.cat([origins, directions], -1).numpy().astype(np.float32)))
     hit = torch.as_tensor(np.isfinite(out["t_hit"].numpy()))
     assert 0.2 < float(hit.double().mean()) < 0.8
