@@ -34,7 +34,8 @@ from polarshape.scene.render import albedo_scale_map, shade_directions, shade_st
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["HemisphereHits", "hemisphere_directions", "hemisphere_hits", "one_bounce_stokes"]
+__all__ = ["HemisphereHits", "HemisphereRays", "hemisphere_directions", "hemisphere_hits", "hemisphere_rays",
+           "one_bounce_stokes"]
 
 _GOLDEN_ANGLE = math.pi * (3.0 - math.sqrt(5.0))
 #: pixels per chunk of hemisphere rays (chunk × samples rays at once)
@@ -61,7 +62,8 @@ class HemisphereHits:
     solid_angle: float
 
 
-def hemisphere_directions(normals: Tensor, samples: int, generator: torch.Generator | None = None) -> Tensor:
+def hemisphere_directions(normals: Tensor, samples: int, generator: torch.Generator | None = None, *,
+                          rows: Tensor | None = None) -> Tensor:
     """(P, S) unit directions on the hemispheres about ``normals`` (P, 3): cos θ uniform in strata,
     φ on the golden-angle lattice, both jittered per pixel (uniform density 1 / 2π per steradian).
 
@@ -69,9 +71,11 @@ def hemisphere_directions(normals: Tensor, samples: int, generator: torch.Genera
         normals: (P, 3) unit normals.
         samples: S ≥ 1 directions per pixel.
         generator: random source on the normals' device (None: torch's global one).
+        rows: (R,) indices into P: only these normals' directions, each the same as in the call without
+            ``rows`` (the random draws of all P are made, the trigonometry of R).
 
     Returns:
-        (P, S, 3) unit vectors with ``ω · N > 0``.
+        (P, S, 3) unit vectors with ``ω · N > 0`` ((R, S, 3) with ``rows``).
     """
     if samples < 1:
         raise ValueError(f"samples must be ≥ 1; got {samples}")
@@ -80,6 +84,8 @@ def hemisphere_directions(normals: Tensor, samples: int, generator: torch.Genera
     j = torch.arange(samples, dtype=dtype, device=device)  # (S,)
     jitter = torch.rand(p, samples, dtype=dtype, device=device, generator=generator)  # (P, S)
     turn = torch.rand(p, 1, dtype=dtype, device=device, generator=generator) * (2.0 * math.pi)  # (P, 1)
+    if rows is not None:
+        normals, jitter, turn = normals[rows], jitter[rows], turn[rows]  # (R, 3), (R, S), (R, 1)
     cos_t = ((j + jitter) / samples).clamp(1e-6, 1.0)  # (P, S) stratified, never grazing exactly
     sin_t = torch.sqrt((1.0 - cos_t * cos_t).clamp_min(0.0))
     phi = j * _GOLDEN_ANGLE + turn  # (P, S)
@@ -88,21 +94,51 @@ def hemisphere_directions(normals: Tensor, samples: int, generator: torch.Genera
         + cos_t.unsqueeze(-1) * normals.unsqueeze(1)
 
 
-def hemisphere_hits(scene: Scene, geometry: GeometryBuffers, samples: int, *, seed: int = 0) -> HemisphereHits:
-    """Cast ``samples`` hemisphere rays from every visible pixel of ``geometry`` into ``scene``.
+@dataclass(frozen=True)
+class HemisphereRays:
+    """The hemisphere rays of the visible pixels of one view (:func:`hemisphere_rays`).
 
-    The rays start off the surface by the hit shape's tolerance (as the shadow rays of
-    :func:`polarshape.scene.raycast.cast_shadow_mask` do).
+    Attributes:
+        pixels: (P,) int64 flat indices (into H·W) of the pixels that cast rays.
+        origins: (P, S, 3) the rays' starts: each pixel's point moved off the surface along its normal.
+        directions: (P, S, 3) unit ray directions, from the pixel's point outward.
+    """
+
+    pixels: Tensor
+    origins: Tensor
+    directions: Tensor
+
+
+def hemisphere_rays(scene: Scene, geometry: GeometryBuffers, samples: int, *, seed: int = 0,
+                    rows: Tensor | None = None) -> HemisphereRays:
+    """The ``samples`` hemisphere rays of every visible pixel of ``geometry`` that :func:`hemisphere_hits` casts.
+
+    The rays start off the surface by the pixel's shape's tolerance (``surface_error_rel · bounding_radius``,
+    along the pixel's normal, as the shadow rays of :func:`polarshape.scene.raycast.cast_shadow_mask` do);
+    their directions are :func:`hemisphere_directions` from a generator seeded with ``seed``.
+
+    ``rows`` ((R,) indices into the P visible pixels, in raster order): only those pixels' rays, each the
+    same as among all P.
     """
     device, dtype = geometry.points.device, geometry.points.dtype
     generator = torch.Generator(device=device).manual_seed(int(seed))
     pixels = geometry.mask.reshape(-1).nonzero().squeeze(1)  # (P,)
     normals = geometry.normals.reshape(-1, 3)[pixels]  # (P, 3)
+    directions = hemisphere_directions(normals, samples, generator, rows=rows)  # (P, S, 3) or (R, S, 3)
+    if rows is not None:
+        pixels, normals = pixels[rows], normals[rows]  # (R,), (R, 3)
     points = geometry.points.reshape(-1, 3)[pixels]  # (P, 3)
-    directions = hemisphere_directions(normals, samples, generator)  # (P, S, 3)
     tolerance = torch.tensor([s.surface_error_rel * s.bounding_radius for s in scene.shapes], dtype=dtype, device=device)
     offset = tolerance[geometry.object_index.reshape(-1)[pixels]]  # (P,)
     origins = (points + offset[:, None] * normals).unsqueeze(1).expand_as(directions)  # (P, S, 3)
+    return HemisphereRays(pixels, origins, directions)
+
+
+def hemisphere_hits(scene: Scene, geometry: GeometryBuffers, samples: int, *, seed: int = 0) -> HemisphereHits:
+    """Cast the ``samples`` hemisphere rays of every visible pixel of ``geometry`` (:func:`hemisphere_rays`)
+    into ``scene``."""
+    rays = hemisphere_rays(scene, geometry, samples, seed=seed)
+    pixels, origins, directions = rays.pixels, rays.origins, rays.directions  # (P,), (P, S, 3), (P, S, 3)
     t, n, index = nearest_hits(scene.shapes, origins.reshape(-1, 3), directions.reshape(-1, 3))  # (P·S,) …
     d = directions.reshape(-1, 3)
     hit = torch.isfinite(t)

@@ -10,7 +10,7 @@ import torch
 
 from polarshape.acquisition.simulated import SimulatedCamera
 from polarshape.scene.config import load_scene_config, parse_scene_config
-from polarshape.scene.interreflection import hemisphere_directions, hemisphere_hits, one_bounce_stokes
+from polarshape.scene.interreflection import hemisphere_directions, hemisphere_hits, hemisphere_rays, one_bounce_stokes
 from polarshape.scene.render import shade_stokes
 
 REPO = Path(__file__).resolve().parents[2]
@@ -36,6 +36,33 @@ def test_hemisphere_directions_are_unit_uniform_and_above_the_surface() -> None:
     assert bool((cos > 0).all())
     # uniform over the hemisphere: cos θ uniform on (0, 1) (mean ½, mean of cos² ⅓)
     assert abs(float(cos.mean()) - 0.5) < 0.01 and abs(float((cos**2).mean()) - 1 / 3) < 0.01
+
+
+def test_hemisphere_directions_of_some_rows_are_those_of_all() -> None:
+    n = torch.nn.functional.normalize(torch.randn(300, 3, dtype=torch.float64), dim=-1)
+    rows = torch.tensor([0, 7, 299, 150])
+    every = hemisphere_directions(n, 16, torch.Generator().manual_seed(4))  # (P, S, 3)
+    some = hemisphere_directions(n, 16, torch.Generator().manual_seed(4), rows=rows)  # (R, S, 3)
+    assert torch.equal(some, every[rows])
+
+
+def test_hemisphere_rays_are_the_rays_cast() -> None:
+    """hemisphere_hits casts hemisphere_rays (its directions, starts off the surface by the shape's tolerance);
+    ``rows`` gives some pixels' rays, the same as among all."""
+    d = _scene([{"shape": {"type": "sphere", "center": [0.0, 0.0, 0.5], "radius": 0.006},
+                 "material": {"model": "lambertian", "k_d": 0.5}}], [{"direction": [0.0, 0.0, -1.0]}], samples=8)
+    with SimulatedCamera(parse_scene_config(d)) as cam:
+        scene, g = cam.scene, cam.geometry
+        rays = hemisphere_rays(scene, g, 8, seed=2)
+        hits = hemisphere_hits(scene, g, 8, seed=2)
+        rows = torch.tensor([3, 0, rays.pixels.numel() - 1])
+        some = hemisphere_rays(scene, g, 8, seed=2, rows=rows)
+    assert torch.equal(rays.pixels, hits.pixels) and torch.equal(rays.directions, hits.directions)
+    points = g.points.reshape(-1, 3)[rays.pixels]  # (P, 3)
+    offset = scene.shapes[0].surface_error_rel * scene.shapes[0].bounding_radius
+    assert torch.allclose(rays.origins[:, 0], points + offset * g.normals.reshape(-1, 3)[rays.pixels])
+    assert torch.equal(some.pixels, rays.pixels[rows]) and torch.equal(some.directions, rays.directions[rows])
+    assert torch.equal(some.origins, rays.origins[rows])
 
 
 def test_floor_beside_a_lit_wall_receives_half_its_radiance() -> None:

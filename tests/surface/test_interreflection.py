@@ -141,3 +141,123 @@ def test_perspective_camera_mesh_grid() -> None:
     b = _bounce(depth, normals, camera, max_pixels=400)
     assert b.stride == 5 and b.rays_hit > 0
     assert float(b.stokes[:, 0][:, torch.as_tensor(dish)].mean()) > 0
+
+
+def _tilted_rim(tilt: float) -> torch.Tensor:
+    """The sphere's normals with the one at the rim pixel (32, 3) turned ``tilt`` radians towards the image centre
+    (a recovered rim not quite convex: its neighbours rise above that pixel's tangent plane)."""
+    _, normals, _ = _sphere(64)
+    n = normals[32, 3].clone()
+    towards = torch.tensor([1.0, 0.0, 0.0], dtype=n.dtype)
+    towards = towards - (towards @ n) * n
+    normals[32, 3] = math.cos(tilt) * n + math.sin(tilt) * towards / towards.norm()
+    return normals
+
+
+def _open_points(normals: torch.Tensor, limit: int = 256) -> torch.Tensor | None:
+    depth, _, camera = _sphere(64)
+    vertices, points, lattice_normals = _grid_points(depth, normals, camera, 1)
+    return interreflection.tangent_plane_open_points(vertices, normals, points, lattice_normals, offset=1e-3 * 0.45,
+                                                     limit=limit)
+
+
+def test_open_points_are_the_pixels_whose_planes_cut_the_surface() -> None:
+    depth, normals, camera = _sphere(64)
+    assert _open_points(normals).numel() == 0  # a sphere: none
+    tilted = _tilted_rim(0.1)
+    opened = _open_points(tilted)
+    vertices, points, lattice_normals = _grid_points(depth, tilted, camera, 1)
+    assert opened.tolist() == [int(np.isfinite(depth).reshape(-1)[: 32 * 64 + 3].sum())]  # the pixel (32, 3)
+    assert _heights(vertices, points[opened], lattice_normals[opened]) > 0  # a vertex above its plane
+    assert _open_points(tilted, limit=0) is None  # more than the limit: None
+    # a crater has hundreds
+    depth, normals, camera, _ = _crater(64)
+    vertices, points, lattice_normals = _grid_points(depth, normals, camera, 1)
+    assert interreflection.tangent_plane_open_points(vertices, normals, points, lattice_normals, offset=1e-3 * 0.0115,
+                                                     limit=256) is None
+
+
+@pytest.mark.parametrize("tilt, cast", [(0.1, False), (0.2, True)])
+def test_open_rim_pixel_casts_rays_only_when_they_may_hit(monkeypatch: pytest.MonkeyPatch, tilt: float,
+                                                          cast: bool) -> None:
+    """A rim pixel whose plane cuts the surface: its own rays decide. At a tilt of 0.1 rad they all miss (the
+    rays are not cast, the estimate is the ray caster's: nothing); at 0.2 rad some hit (the rays are cast)."""
+    depth, _, camera = _sphere(64)
+    normals = _tilted_rim(tilt)
+    assert _open_points(normals).numel() == 1
+    calls: list[int] = []
+    hits = interreflection.hemisphere_hits
+
+    def counted(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+        calls.append(1)
+        return hits(*args, **kwargs)
+
+    monkeypatch.setattr(interreflection, "hemisphere_hits", counted)
+    decided = _bounce(depth, normals, camera, max_pixels=64 * 64)
+    assert bool(calls) is cast
+    monkeypatch.setattr(interreflection, "_MAX_OPEN_POINTS", -1)  # no point left to the rays' test: always cast
+    rays = _bounce(depth, normals, camera, max_pixels=64 * 64)
+    assert (rays.rays_hit > 0) is cast
+    assert decided.rays_hit == rays.rays_hit and torch.equal(decided.stokes, rays.stokes)
+
+
+@pytest.mark.parametrize("max_open, max_pairs", [(-1, 1 << 20), (256, 1 << 20), (1 << 30, 1 << 20),
+                                                 (1 << 30, 1 << 30)])
+def test_crater_gets_the_same_bounce_whatever_decides_to_cast(monkeypatch: pytest.MonkeyPatch, max_open: int,
+                                                              max_pairs: int) -> None:
+    """A concavity is cast whether the open points are too many (the default), or all go to the rays' test
+    (too many (ray, triangle) pairs, or every pair tested: rays that may hit found), or none do."""
+    depth, normals, camera, dish = _crater(48)
+    reference = _bounce(depth, normals, camera, max_pixels=400)
+    monkeypatch.setattr(interreflection, "_MAX_OPEN_POINTS", max_open)
+    monkeypatch.setattr(interreflection, "_MAX_RAY_TRIANGLE_PAIRS", max_pairs)
+    b = _bounce(depth, normals, camera, max_pixels=400)
+    assert reference.rays_hit > 0 and float(reference.stokes[:, 0][:, torch.as_tensor(dish)].mean()) > 0
+    assert b.rays_hit == reference.rays_hit and torch.equal(b.stokes, reference.stokes)
+
+
+def test_ray_triangle_test_widens_by_the_margin() -> None:
+    triangle = torch.tensor([[[0.0, 0.0, 1.0], [1.0, 0.0, 1.0], [0.0, 1.0, 1.0]]], dtype=torch.float64)
+    down = torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64)
+
+    def meets(origin: list[float], direction: torch.Tensor = down, margin: float = 1e-3) -> bool:
+        o = torch.tensor([origin], dtype=torch.float64)
+        return bool(interreflection.rays_may_meet_triangles(o, direction / direction.norm(), triangle, margin)[0])
+
+    assert meets([0.2, 0.2, 0.0])  # through the inside
+    assert meets([-0.0005, 0.2, 0.0]) and not meets([-0.002, 0.2, 0.0])  # past an edge: within the margin or not
+    assert meets([0.5005, 0.5005, 0.0]) and not meets([0.502, 0.502, 0.0])  # the slanted edge
+    assert not meets([0.2, 0.2, 1.01])  # behind the ray's start
+    assert meets([0.2, 0.2, 1.0005])  # just behind, within the margin
+    along = torch.tensor([[1.0, 0.0, 0.0]], dtype=torch.float64)  # parallel to the plane
+    assert meets([-1.0, 0.2, 1.0005], along) and not meets([-1.0, 0.2, 1.002], along)
+    assert not meets([2.0, 0.2, 1.0], along)  # leaving it
+
+
+def test_ray_triangle_test_keeps_every_hit_of_the_ray_caster() -> None:
+    """Against open3d (float32, the estimator's ray caster): every hit is kept, and a ray that misses the whole
+    mesh is proven to miss every triangle."""
+    o3d = pytest.importorskip("open3d")
+    from polarshape.surface.mesh import depth_to_mesh
+
+    depth, normals, camera, _ = _crater(24)
+    mesh = depth_to_mesh(depth, camera=camera)
+    vertices = torch.as_tensor(np.asarray(mesh.vertices, dtype=np.float64))
+    faces = torch.as_tensor(np.asarray(mesh.faces, dtype=np.int64))
+    gen = torch.Generator().manual_seed(5)
+    origins = vertices[torch.randint(len(vertices), (4000,), generator=gen)] - torch.tensor([0.0, 0.0, 2e-3],
+                                                                                            dtype=torch.float64)
+    directions = torch.nn.functional.normalize(torch.randn(4000, 3, generator=gen, dtype=torch.float64), dim=-1)
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(vertices.numpy().astype(np.float32)),
+                        o3d.core.Tensor(faces.numpy().astype(np.uint32)))
+    out = scene.cast_rays(o3d.core.Tensor(torch.cat([origins, directions], -1).numpy().astype(np.float32)))
+    hit = torch.as_tensor(np.isfinite(out["t_hit"].numpy()))
+    assert 0.2 < float(hit.double().mean()) < 0.8
+    margin = interreflection._FLOAT32_MARGIN * float(vertices.abs().max())
+    prim = torch.as_tensor(out["primitive_ids"].numpy().astype(np.int64))[hit]
+    assert interreflection.rays_may_meet_triangles(origins[hit], directions[hit], vertices[faces[prim]], margin).all()
+    missed = (~hit).nonzero().squeeze(1)[:60]  # (M,) each against every triangle
+    pairs = torch.cartesian_prod(missed, torch.arange(len(faces)))  # (M·F, 2)
+    assert not interreflection.rays_may_meet_triangles(origins[pairs[:, 0]], directions[pairs[:, 0]],
+                                                       vertices[faces[pairs[:, 1]]], margin).any()
