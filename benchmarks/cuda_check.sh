@@ -9,13 +9,15 @@
 #
 # Usage: bash benchmarks/cuda_check.sh OUTDIR [WORKDIR]
 #   DEVICE=cpu SIZES="128" LIGHTS="4" bash benchmarks/cuda_check.sh /tmp/out   # a dry run of the script on a CPU box
+#   SIZES="256 full" LIGHTS="" CPU_FULL=0 bash benchmarks/cuda_check.sh OUTDIR  # tests and two sizes only
 set -u
 out=${1:?usage: cuda_check.sh OUTDIR [WORKDIR]}
 work=${2:-/tmp/cuda_check}
 py=${PYTHON:-python3}
 device=${DEVICE:-cuda}
 sizes=${SIZES:-128 256 512 1024 full}
-lights=${LIGHTS:-4 8 12 24 48}
+lights=${LIGHTS-4 8 12 24 48}  # LIGHTS="" skips the light sweep
+cpu_full=${CPU_FULL:-1}  # CPU_FULL=0 skips part 3
 mkdir -p "$out" "$work"
 export PYTHONUNBUFFERED=1
 
@@ -37,7 +39,7 @@ timeout 330 $py benchmarks/scaling.py --device "$device" --sizes $sizes --lights
     --md "$out/scaling_$device.md" 2>&1 | tee "$out/scaling_$device.log"
 
 echo "== the full frame on this machine's CPU"
-if [[ " $sizes " == *" full "* ]]; then
+if [[ " $sizes " == *" full "* && $cpu_full == 1 ]]; then
     timeout 90 $py benchmarks/scaling.py --device cpu --case full-frame --work "$work/scaling" 2>&1 \
         | tee "$out/fullframe_cpu.log"
 fi
