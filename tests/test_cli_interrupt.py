@@ -26,8 +26,11 @@ def _scene(folder: Path, width: int) -> Path:
 
 
 def _interrupt_when(cmd: list[str], ready: Callable[[], bool]) -> tuple[int, str]:
+    # SIGINT as in a terminal's foreground job: a test run started in the background of a non-interactive
+    # shell (`make test &`) inherits SIGINT ignored, and Python then never raises KeyboardInterrupt
     proc = subprocess.Popen([sys.executable, "-m", "polarshape.cli", *cmd], stdout=subprocess.DEVNULL,
-                            stderr=subprocess.PIPE, text=True)
+                            stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     deadline = time.monotonic() + 120
     while not ready() and proc.poll() is None and time.monotonic() < deadline:
         time.sleep(0.02)
