@@ -94,6 +94,20 @@ def test_joint_solve_reaches_a_far_specular_albedo_at_once() -> None:
     assert all(b["loss"] <= a["loss"] for a, b in zip(fit.history, fit.history[1:]))
 
 
+def test_joint_solve_with_one_global_body_albedo() -> None:
+    # per_pixel_albedo=False: k_b is a fitted global, projected with k_s onto their closed form after each step
+    inputs, truth = _sphere_inputs(16, alpha=0.3)
+    m = inputs.mask
+    obs = flatten_observations(inputs, m)
+    fit = joint_solve(truth[m], obs, FMBRDFParams(ior=1.5, alpha=0.2, beta=2.0, k_s=0.0, k_b=0.1),
+                      names=("ior", "alpha", "beta"), per_pixel_albedo=False, delta=3e-3, max_iter=20, tol=1e-5)
+    assert fit.converged and fit.iterations <= 10, (fit.iterations, fit.rel_change)
+    assert abs(fit.params.k_b - 0.5) < 1e-3 and abs(fit.params.k_s - 1.0) < 1e-3, fit.params
+    assert abs(fit.params.alpha - 0.3) < 1e-3 and abs(fit.params.ior - 1.5) < 1e-3, fit.params
+    assert bool((fit.k_b == fit.k_b[0]).all())  # one k_b for every pixel
+    assert all(b["loss"] <= a["loss"] for a, b in zip(fit.history, fit.history[1:]))
+
+
 @pytest.mark.slow
 def test_joint_level_at_least_as_good_as_the_alternation() -> None:
     inputs, truth, start = _shiny_sphere()
