@@ -66,8 +66,8 @@ from polarshape.recover.reflectometry import BOUNDS, render_parts, solve_albedos
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["JointResult", "TABLE_PARAMS", "joint_solve", "loss_floor", "nested_kappa", "schur_step", "settled",
-           "trimmed_gain"]
+__all__ = ["JointResult", "TABLE_PARAMS", "clearly_below", "first_of", "joint_solve", "loss_floor", "nested_kappa",
+           "schur_step", "settled", "trimmed_gain"]
 
 #: The global parameters that need a table build, in the order of the global vector.
 TABLE_PARAMS: tuple[str, ...] = ("ior", "alpha", "beta", "kappa")
@@ -471,7 +471,7 @@ def joint_solve(normals: Tensor, obs: Observations, params: FMBRDFParams, *, nam
                        unit(normals), replace(params), st.loss_pp, initial_pp)
 
 
-def _clearly_below(target: float, floor: float, reference: float | None = None) -> Callable[[float, list[dict]], bool]:
+def clearly_below(target: float, floor: float, reference: float | None = None) -> Callable[[float, list[dict]], bool]:
     """A :func:`joint_solve` ``stop`` test: True once the solve's relative gain over ``reference`` (default:
     its initial loss; relative to max(reference, ``floor``)) will clearly end below ``target``. From the
     third iteration on, with the last two relative changes c₋₁, c (geometric rate ρ = c / c₋₁ < ½), the
@@ -516,6 +516,16 @@ def settled(tol: float, rate: float) -> Callable[[float, list[dict]], bool]:
     return stop
 
 
+def first_of(*tests: Callable[[float, list[dict]], bool]) -> Callable[[float, list[dict]], bool]:
+    """A :func:`joint_solve` ``stop`` test: True once any of ``tests`` is (e.g. :func:`settled` or
+    :func:`clearly_below`)."""
+
+    def stop(initial: float, history: list[dict]) -> bool:
+        return any(test(initial, history) for test in tests)
+
+    return stop
+
+
 def nested_kappa(start: JointResult, obs: Observations, *, fresh_max_iter: int = 6, min_gain: float = 0.01,
                  corner_ratio: float = 2.0, decide_gain: float | None = None,
                  **kwargs: object) -> tuple[JointResult, float]:
@@ -540,7 +550,7 @@ def nested_kappa(start: JointResult, obs: Observations, *, fresh_max_iter: int =
             the second start unnecessary. corner_ratio: how far (a factor in α or β) the κ = 0 solve must have
             moved from its start for the second start. decide_gain: the gain a caller's decision needs; the
             solve from the optimum, and the second start, stop once their gain over the κ = 0 optimum
-            clearly ends below it (:func:`_clearly_below`: a test, not a fit). kwargs: :func:`joint_solve`'s
+            clearly ends below it (:func:`clearly_below`: a test, not a fit). kwargs: :func:`joint_solve`'s
             keywords (``names`` gets ``kappa`` added).
 
     Returns:
@@ -552,7 +562,7 @@ def nested_kappa(start: JointResult, obs: Observations, *, fresh_max_iter: int =
     base = tuple(kwargs.pop("names", ()))  # type: ignore[arg-type]
     names = base + ("kappa",)
     floor = loss_floor(float(kwargs.get("delta", 0.01)))  # type: ignore[arg-type]
-    stop = None if decide_gain is None else _clearly_below(decide_gain, floor)
+    stop = None if decide_gain is None else clearly_below(decide_gain, floor)
     fit = joint_solve(start.normals, obs, replace(start.params, kappa=0.0), names=names, stop=stop,
                       **kwargs)  # type: ignore[arg-type]
     ref = fit.initial_loss  # the κ = 0 optimum on these tables
@@ -567,7 +577,7 @@ def nested_kappa(start: JointResult, obs: Observations, *, fresh_max_iter: int =
         fresh_kw = {**kwargs, "max_iter": most}
         # stopped once its gain over the κ = 0 optimum clearly ends below the decision's (on the 256² α 0.03
         # spheres it stays above the optimum's loss: 4 iterations instead of 6)
-        fresh_stop = None if decide_gain is None else _clearly_below(decide_gain, floor, reference=ref)
+        fresh_stop = None if decide_gain is None else clearly_below(decide_gain, floor, reference=ref)
         fresh = joint_solve(start.start_normals, obs, replace(s0, kappa=0.0), names=names, stop=fresh_stop,
                             **fresh_kw)  # type: ignore[arg-type]
         logger.info("nested κ: from the κ = 0 optimum loss %.6g (κ %.3g), from its start %.6g (κ %.3g)", fit.loss,

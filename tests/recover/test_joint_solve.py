@@ -13,7 +13,7 @@ from polarshape.brdf.params import FMBRDFParams
 from polarshape.metrics import angular_error_deg
 from polarshape.recover.coarse_to_fine import solve_fmbrdf
 from polarshape.recover.joint_solve import (
-    joint_solve, loss_floor, nested_kappa, schur_step, settled, trimmed_gain,
+    clearly_below, first_of, joint_solve, loss_floor, nested_kappa, schur_step, settled, trimmed_gain,
 )
 from polarshape.recover.observations import Observations, flatten_observations
 from polarshape.recover.options import RecoveryOptions
@@ -241,6 +241,21 @@ def test_settled_stops_only_a_fast_descent_below_its_tolerance() -> None:
     assert stop(1.0, h(0.1, 7e-4))  # below 0.1 % and 140× smaller than the change before
     assert not stop(1.0, h(2e-3, 7e-4))  # below 0.1 % but crawling (ρ 0.35): the rest may be large
     assert not stop(1.0, h(0.2, 0.015))  # fast, but the change itself above 0.1 %
+
+
+def test_a_polish_stops_once_its_gain_over_the_kappa_free_optimum_clearly_ends_below_the_decision() -> None:
+    # the κ polish of the 256² α 0.03 sphere exposed not to clip (coarse_to_fine._kappa_decision): its first three
+    # full-table iterations from the coarse test's κ 100, against the κ = 0 optimum's loss 3.36204e-7 (gain 22.7 %,
+    # changes shrinking at ρ 0.3: the rest is ~1e-4, far from the 25 % that keeps κ; it crawled on to 23.6 % in 17 more)
+    history = [{"loss": 2.59982e-7, "rel_change": 1.39e-3}, {"loss": 2.59816e-7, "rel_change": 6.38e-4},
+               {"loss": 2.59767e-7, "rel_change": 1.89e-4}]
+    polish = first_of(settled(1e-3, 0.1), clearly_below(0.25, 1e-12, reference=3.36204e-7))
+    assert not polish(2.60344e-7, history[:2])  # no rate before the third iteration
+    assert polish(2.60344e-7, history)
+    assert not settled(1e-3, 0.1)(2.60344e-7, history)  # the tolerance test alone would not stop it (ρ 0.3)
+    # the same descent from a κ = 0 optimum it already beats by 27 %: never stopped by the gain test
+    assert not first_of(clearly_below(0.25, 1e-12, reference=3.56e-7))(2.60344e-7, history)
+    assert not first_of()(1.0, history)  # no test: never stops
 
 
 def test_trimmed_gain_is_measured_against_a_floor() -> None:
