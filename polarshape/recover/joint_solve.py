@@ -283,12 +283,25 @@ def _where(take: Tensor, a: _State, b: _State) -> _State:
                   torch.where(take, a.loss_pp, b.loss_pp))
 
 
+def _linear_optimum(model: _Model, st: _State, robust_weight: Tensor | None = None) -> _State:
+    """``st`` with the linear globals (k_s; a global k_b) at their closed-form optimum (weighted by
+    ``robust_weight`` (P, K, 3) when given), from its rendered parts: the albedos need no table build
+    and no render."""
+    k_s, k_b = solve_albedos(st.surf, st.body, model.obs, per_pixel=model.per_pixel, polarised=model.polarised,
+                             robust_weight=robust_weight)
+    if model.per_pixel:
+        vals = {**st.vals, "k_s": float(k_s)}
+    else:
+        k_s_host, k_b_host = torch.stack([k_s.reshape(()), k_b[0]]).tolist()  # two numbers: one host sync
+        vals = {**st.vals, "k_s": k_s_host, "k_b": k_b_host}
+    problem = model.problem(st.problem.tables, vals)
+    r, k_b_pp = problem.residual_of_parts(st.surf, st.body, model.obs)
+    return _State(vals, problem, st.n, st.surf, st.body, r, k_b_pp, problem.loss(r))
+
+
 def _start(model: _Model, vals: dict[str, float], n: Tensor) -> _State:
     """The point (``vals``, ``n``) with the linear globals (k_s; a global k_b) at their closed-form optimum."""
-    st = _state(model, vals, n)
-    k_s, k_b = solve_albedos(st.surf, st.body, model.obs, per_pixel=model.per_pixel, polarised=model.polarised)
-    vals = {**vals, "k_s": float(k_s), "k_b": vals["k_b"] if model.per_pixel else float(k_b[0])}
-    return _state(model, vals, n, model.problem(st.problem.tables, vals))  # the albedos need no new tables
+    return _linear_optimum(model, _state(model, vals, n))
 
 
 def _project_linear(model: _Model, st: _State) -> _State:
@@ -299,17 +312,7 @@ def _project_linear(model: _Model, st: _State) -> _State:
     k_s = 0 start it grows only ×1.5 per iteration, and on the 256² α 0.03 spheres it took 17 of 20
     iterations to reach the k_s of the data. The closed form reuses the rendered parts (no table build,
     no render): one reduction per accepted step."""
-    w = irls_weights(st.problem, st.r)  # (P, K, 3)
-    k_s, k_b = solve_albedos(st.surf, st.body, model.obs, per_pixel=model.per_pixel, polarised=model.polarised,
-                             robust_weight=w)
-    if model.per_pixel:
-        vals = {**st.vals, "k_s": float(k_s)}
-    else:
-        k_s_host, k_b_host = torch.stack([k_s.reshape(()), k_b[0]]).tolist()  # two numbers: one host sync
-        vals = {**st.vals, "k_s": k_s_host, "k_b": k_b_host}
-    problem = model.problem(st.problem.tables, vals)  # the albedos need no new tables
-    r, k_b_pp = problem.residual_of_parts(st.surf, st.body, model.obs)
-    trial = _State(vals, problem, st.n, st.surf, st.body, r, k_b_pp, problem.loss(r))
+    trial = _linear_optimum(model, st, irls_weights(st.problem, st.r))
     return trial if bool(trial.loss_pp.sum() < st.loss_pp.sum()) else st
 
 
