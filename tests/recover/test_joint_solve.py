@@ -108,6 +108,18 @@ def test_joint_solve_with_one_global_body_albedo() -> None:
     assert all(b["loss"] <= a["loss"] for a, b in zip(fit.history, fit.history[1:]))
 
 
+def test_the_global_body_albedo_is_projected_with_k_s_after_the_first_step() -> None:
+    # from α 0.1 the closed-form k_s of the start is far below the truth (1): after the first accepted step the projection puts
+    # k_s (and the global k_b) at their IRLS optimum, 0.98; the LM's capped linear step alone reached 0.24
+    inputs, truth = _sphere_inputs(16, alpha=0.3)
+    m = inputs.mask
+    obs = flatten_observations(inputs, m)
+    fit = joint_solve(truth[m], obs, FMBRDFParams(ior=1.5, alpha=0.1, beta=2.0, k_s=0.0, k_b=0.1),
+                      names=("ior", "alpha", "beta"), per_pixel_albedo=False, delta=3e-3, max_iter=20, tol=1e-5)
+    assert fit.history[0]["k_s"] > 0.5, fit.history[0]
+    assert fit.converged and abs(fit.params.k_s - 1.0) < 1e-3 and abs(fit.params.k_b - 0.5) < 1e-3, fit.params
+
+
 @pytest.mark.slow
 def test_joint_level_at_least_as_good_as_the_alternation() -> None:
     inputs, truth, start = _shiny_sphere()
