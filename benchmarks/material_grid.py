@@ -25,7 +25,8 @@ busy box). Then the median total and max/median (the issue: no case slower than 
 
 Usage:
     python benchmarks/material_grid.py [--alphas 0.03 0.1 0.3 0.8] [--kappas 0 50]
-        [--cameras orthographic perspective] [--size 256] [--lights 13] [--solver alternating|joint]
+        [--cameras orthographic perspective] [--size 256] [--lights 13] [--exposure-us US]
+        [--solver alternating|joint]
         [--work DIR] [--tag NAME] [--json FILE] [--md FILE] [--reuse] [--compare TAG]
 
     # before/after: each checkout's grid on the same captures, then both side by side
@@ -60,26 +61,37 @@ CAMERAS = ("orthographic", "perspective")
 PERSPECTIVE_DISTANCE_M, PERSPECTIVE_RADIUS_M = 0.5, 0.1
 
 
-def case_name(alpha: float, kappa: float, camera: str, size: int, lights: int) -> str:
-    """``a0.03_k50_perspective_256@13``: one case's name (files in ``--work``)."""
-    return f"a{alpha:g}_k{kappa:g}_{camera}_{size}@{lights}"
+def case_name(alpha: float, kappa: float, camera: str, size: int, lights: int, exposure_us: float | None = None) -> str:
+    """``a0.03_k50_perspective_256@13``: one case's name (files in ``--work``); ``_e300us`` appended for an
+    exposure other than the scene's."""
+    return f"a{alpha:g}_k{kappa:g}_{camera}_{size}@{lights}" + ("" if exposure_us is None else f"_e{exposure_us:g}us")
 
 
 def parse_case(name: str) -> tuple[float, float, str, int, int]:
-    """The inverse of :func:`case_name`."""
+    """The inverse of :func:`case_name` but for the exposure (:func:`parse_exposure`)."""
     a, k, camera, rest = name.split("_", 3)
-    size, lights = rest.split("@")
+    size, lights = rest.split("_e")[0].split("@")
     return float(a[1:]), float(k[1:]), camera, int(size), int(lights)
 
 
-def scene_file(alpha: float, kappa: float, camera: str, size: int, lights: int, path: Path) -> Path:
-    """The scene of one case (module docstring) written to ``path``."""
+def parse_exposure(name: str) -> float | None:
+    """The exposure (µs) a :func:`case_name` carries, None for the scene's own."""
+    tail = name.split("@", 1)[1]
+    return float(tail.split("_e", 1)[1].removesuffix("us")) if "_e" in tail else None
+
+
+def scene_file(alpha: float, kappa: float, camera: str, size: int, lights: int, path: Path,
+               exposure_us: float | None = None) -> Path:
+    """The scene of one case (module docstring) written to ``path``; ``exposure_us``: the camera's exposure
+    instead of the scene's (configs/scenes/sphere.yaml: 10 ms, which clips the lobe's core at α ≤ 0.1)."""
     import yaml
 
     raw = 2 * size
     full_frame_scene(raw, raw, lights, path)
     scene = yaml.safe_load(path.read_text())
     scene["objects"][0]["material"].update(alpha=float(alpha), kappa=float(kappa))
+    if exposure_us is not None:
+        scene["camera"]["exposure_us"] = float(exposure_us)
     if camera == "perspective":
         cam = scene["camera"]
         cam["projection"] = "perspective"
@@ -100,7 +112,7 @@ def render(work: Path, name: str, device: str) -> Path:
     """The capture of case ``name`` (rendered unless ``work`` has it)."""
     capture = work / f"capture_{name}"
     if not (capture / "capture.yaml").exists():
-        simulate(scene_file(*parse_case(name), work / f"scene_{name}.yaml"), capture, device)
+        simulate(scene_file(*parse_case(name), work / f"scene_{name}.yaml", parse_exposure(name)), capture, device)
     return capture
 
 
@@ -226,6 +238,9 @@ def main() -> None:
     parser.add_argument("--cameras", nargs="*", choices=CAMERAS, default=list(CAMERAS))
     parser.add_argument("--size", type=int, default=256, help="N×N super-pixels")
     parser.add_argument("--lights", type=int, default=13)
+    parser.add_argument("--exposure-us", type=float, default=None,
+                        help="camera exposure of every case (default: the scene's 10 ms, which clips the lobe's core "
+                        "at alpha <= 0.1); the case names get _e<µs>us")
     parser.add_argument("--solver", choices=["alternating", "joint"], default=None,
                         help="recovery.solver (default: the configuration's)")
     parser.add_argument("--device", choices=["cpu", "cuda"], default="cpu")
@@ -239,6 +254,8 @@ def main() -> None:
     parser.add_argument("--case", help=argparse.SUPPRESS)  # one case in this process (what the grid runs)
     parser.add_argument("--case-json", type=Path, help=argparse.SUPPRESS)
     args = parser.parse_args()
+    if args.exposure_us is not None and not args.exposure_us > 0:
+        parser.error(f"--exposure-us must be a positive number of microseconds; got {args.exposure_us:g}")
 
     with tempfile.TemporaryDirectory() as tmp:
         work = (args.work or Path(tmp)).absolute()
@@ -249,8 +266,8 @@ def main() -> None:
                 args.case_json.write_text(json.dumps(result))
             print("\n".join(table([args.case], [result])))
             return
-        names = [case_name(a, k, c, args.size, args.lights) for c in args.cameras for k in args.kappas
-                 for a in args.alphas]
+        names = [case_name(a, k, c, args.size, args.lights, args.exposure_us) for c in args.cameras
+                 for k in args.kappas for a in args.alphas]
         head = [machine_line(), f"{args.size}² super-pixels, {args.lights} lights, solver "
                 f"{args.solver or 'default'}", ""]
         print("\n".join(head), flush=True)

@@ -32,6 +32,25 @@ def test_case_names_round_trip(grid) -> None:  # noqa: ANN001
     assert grid.parse_case(name) == (0.03, 50.0, "perspective", 256, 13)
 
 
+def test_an_exposure_other_than_the_scenes_is_in_the_name_and_the_scene(grid, tmp_path: Path) -> None:  # noqa: ANN001
+    import yaml
+
+    name = grid.case_name(0.03, 0.0, "orthographic", 256, 13, 300.0)
+    assert name == "a0.03_k0_orthographic_256@13_e300us"
+    assert grid.parse_case(name) == (0.03, 0.0, "orthographic", 256, 13) and grid.parse_exposure(name) == 300.0
+    assert grid.parse_exposure(grid.case_name(0.03, 0.0, "orthographic", 256, 13)) is None
+    raw = yaml.safe_load(grid.scene_file(0.03, 0.0, "orthographic", 64, 13, tmp_path / "s.yaml", 300.0).read_text())
+    assert parse_scene_config(raw).camera.exposure_us == 300.0
+    default = yaml.safe_load(grid.scene_file(0.03, 0.0, "orthographic", 64, 13, tmp_path / "d.yaml").read_text())
+    assert parse_scene_config(default).camera.exposure_us == 10000.0
+
+
+def test_a_non_positive_exposure_is_refused_with_the_option_named() -> None:
+    proc = subprocess.run([sys.executable, str(BENCHMARKS / "material_grid.py"), "--exposure-us", "0"],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2 and "--exposure-us must be a positive number" in proc.stderr, proc.stderr
+
+
 @pytest.mark.parametrize("camera", ["orthographic", "perspective"])
 def test_scene_has_the_material_and_camera_of_the_case(grid, camera: str, tmp_path: Path) -> None:  # noqa: ANN001
     import yaml
