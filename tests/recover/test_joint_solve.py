@@ -79,15 +79,21 @@ def test_joint_solve_recovers_material_and_normals_and_converges() -> None:
     assert 0.2 < fit.history[0]["rho"][-1] < 3.0, fit.history[0]
 
 
+def _fit_from(alpha: float, *, per_pixel_albedo: bool = True):  # noqa: ANN202
+    """The joint solve of the noise-free 16² α 0.3 sphere at its true normals from a lobe of width ``alpha``,
+    k_s 0 and k_b 0.1 (μ, β true)."""
+    inputs, truth = _sphere_inputs(16, alpha=0.3)
+    m = inputs.mask
+    return joint_solve(truth[m], flatten_observations(inputs, m),
+                       FMBRDFParams(ior=1.5, alpha=alpha, beta=2.0, k_s=0.0, k_b=0.1), names=("ior", "alpha", "beta"),
+                       per_pixel_albedo=per_pixel_albedo, delta=3e-3, max_iter=20, tol=1e-5)
+
+
 def test_joint_solve_reaches_a_far_specular_albedo_at_once() -> None:
     # a start lobe far too narrow (α 0.05 for 0.3) gives a closed-form k_s 19× too small; the LM's step on
     # k_s is capped relative to its value (×1.5 per iteration), so without the closed-form projection of
     # the linear globals after each step this took 16 iterations, most of them growing k_s
-    inputs, truth = _sphere_inputs(16, alpha=0.3)
-    m = inputs.mask
-    obs = flatten_observations(inputs, m)
-    fit = joint_solve(truth[m], obs, FMBRDFParams(ior=1.5, alpha=0.05, beta=2.0, k_s=0.0),
-                      names=("ior", "alpha", "beta"), delta=3e-3, max_iter=20, tol=1e-5)
+    fit = _fit_from(0.05)
     assert fit.history[0]["k_s"] > 0.5, fit.history[0]  # not 0.08 (×1.5 from the start's 0.053)
     assert fit.converged and fit.iterations <= 10, (fit.iterations, [h["k_s"] for h in fit.history])
     assert abs(fit.params.k_s - 1.0) < 1e-3 and abs(fit.params.alpha - 0.3) < 1e-3, fit.params
@@ -96,11 +102,7 @@ def test_joint_solve_reaches_a_far_specular_albedo_at_once() -> None:
 
 def test_joint_solve_with_one_global_body_albedo() -> None:
     # per_pixel_albedo=False: k_b is a fitted global, projected with k_s onto their closed form after each step
-    inputs, truth = _sphere_inputs(16, alpha=0.3)
-    m = inputs.mask
-    obs = flatten_observations(inputs, m)
-    fit = joint_solve(truth[m], obs, FMBRDFParams(ior=1.5, alpha=0.2, beta=2.0, k_s=0.0, k_b=0.1),
-                      names=("ior", "alpha", "beta"), per_pixel_albedo=False, delta=3e-3, max_iter=20, tol=1e-5)
+    fit = _fit_from(0.2, per_pixel_albedo=False)
     assert fit.converged and fit.iterations <= 10, (fit.iterations, fit.rel_change)
     assert abs(fit.params.k_b - 0.5) < 1e-3 and abs(fit.params.k_s - 1.0) < 1e-3, fit.params
     assert abs(fit.params.alpha - 0.3) < 1e-3 and abs(fit.params.ior - 1.5) < 1e-3, fit.params
@@ -109,13 +111,10 @@ def test_joint_solve_with_one_global_body_albedo() -> None:
 
 
 def test_the_global_body_albedo_is_projected_with_k_s_after_the_first_step() -> None:
-    # from α 0.1 the closed-form k_s of the start is far below the truth (1): after the first accepted step the projection puts
-    # k_s (and the global k_b) at their IRLS optimum, 0.98; the LM's capped linear step alone reached 0.24
-    inputs, truth = _sphere_inputs(16, alpha=0.3)
-    m = inputs.mask
-    obs = flatten_observations(inputs, m)
-    fit = joint_solve(truth[m], obs, FMBRDFParams(ior=1.5, alpha=0.1, beta=2.0, k_s=0.0, k_b=0.1),
-                      names=("ior", "alpha", "beta"), per_pixel_albedo=False, delta=3e-3, max_iter=20, tol=1e-5)
+    # from α 0.1 the closed-form k_s of the start is far below the truth (1): after the first accepted step the
+    # projection puts k_s (and the global k_b) at their IRLS optimum, 0.98; the LM's capped linear step alone
+    # reached 0.24
+    fit = _fit_from(0.1, per_pixel_albedo=False)
     assert fit.history[0]["k_s"] > 0.5, fit.history[0]
     assert fit.converged and abs(fit.params.k_s - 1.0) < 1e-3 and abs(fit.params.k_b - 0.5) < 1e-3, fit.params
 
