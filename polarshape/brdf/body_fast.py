@@ -137,21 +137,30 @@ class ArcFourier(torch.autograd.Function):
     """Azimuthal Fourier coefficients on the arc rules: for m = 0..M−1,
     even[c, m] = Σ_n h_even[c, ..., n] cos(m φ_n) and odd[m] = Σ_n h_odd[..., n] sin(m φ_n).
 
-    The (φ-node, φ-pair) sums are batched matrix products with a block of cos mφ, sin mφ (all M
-    modes of a few arc pairs at a time, computed directly): each block's (p, n, M) tensors are no
-    larger than φ itself, so memory stays O(G·Q·n) and not O(G·Q·n·M). The backward pass is the
-    same products transposed (the blocks are recomputed, not stored).
+    cos mφ and sin mφ come from the Chebyshev recurrence x_{m+1} = 2 cos φ · x_m − x_{m−1} (both obey
+    it), one mode at a time on the flattened (arc pairs, nodes) arrays, each mode's sums taken as it is
+    made: two trigonometric evaluations per node instead of 2M, and no (pairs, nodes, M) block. At the
+    κ 50, α 0.8 layout (M 41; 40 rows × 100 facet nodes × 33 arc nodes) 2.6× faster than the
+    direct cos, sin of a (pairs, nodes, M) block with batched products, to 7e-15 of the largest
+    coefficient (the recurrence's rounding grows as m²·eps: ≤ 3e-12 at the cap M = 160). The backward
+    pass is the same sums transposed (the modes are recomputed, not stored).
     """
 
     @staticmethod
-    def _blocks(phi: Tensor, n_modes: int):  # noqa: ANN205
-        """(slice of the flattened arc pairs, cos mφ, sin mφ (p, n, M)) for blocks of pairs."""
+    def _modes(phi: Tensor, n_modes: int):  # noqa: ANN205
+        """(m, cos mφ, sin mφ) for m = 0..M−1, each (P, n) over the flattened arc pairs of ``phi``."""
         flat = phi.reshape(-1, phi.shape[-1])  # (P, n)
-        m = torch.arange(n_modes, dtype=phi.dtype, device=phi.device)
-        step = max(1, flat.shape[0] // n_modes)  # a block's (p, n, M) ≤ φ's P·n elements
-        for p0 in range(0, flat.shape[0], step):
-            angle = flat[p0 : p0 + step, :, None] * m  # (p, n, M)
-            yield slice(p0, p0 + step), torch.cos(angle), torch.sin(angle)
+        c_prev, s_prev = torch.ones_like(flat), torch.zeros_like(flat)
+        yield 0, c_prev, s_prev
+        if n_modes < 2:
+            return
+        c, s = torch.cos(flat), torch.sin(flat)
+        yield 1, c, s
+        two_cos = 2.0 * c
+        for m in range(2, n_modes):
+            c_prev, c = c, torch.addcmul(-c_prev, two_cos, c)  # cos mφ = 2 cos φ cos (m−1)φ − cos (m−2)φ
+            s_prev, s = s, torch.addcmul(-s_prev, two_cos, s)  # sin likewise
+            yield m, c, s
 
     @staticmethod
     def forward(ctx, h_even: Tensor, h_odd: Tensor, phi: Tensor, n_modes: int) -> tuple[Tensor, Tensor]:  # noqa: ANN001
@@ -163,9 +172,9 @@ class ArcFourier(torch.autograd.Function):
         he, ho = h_even.reshape(n_c, -1, phi.shape[-1]), h_odd.reshape(-1, phi.shape[-1])  # (C, P, n), (P, n)
         even = phi.new_empty((n_c, n_modes, he.shape[1]))
         odd = phi.new_empty((n_modes, he.shape[1]))
-        for sl, cos_m, sin_m in ArcFourier._blocks(phi, n_modes):
-            even[:, :, sl] = torch.einsum("cpn,pnm->cmp", he[:, sl], cos_m)
-            odd[:, sl] = torch.einsum("pn,pnm->mp", ho[sl], sin_m)
+        for m, cos_m, sin_m in ArcFourier._modes(phi, n_modes):
+            even[:, m] = (he * cos_m).sum(-1)
+            odd[m] = (ho * sin_m).sum(-1)
         return even.reshape(n_c, n_modes, *pairs), odd.reshape(n_modes, *pairs)
 
     @staticmethod
@@ -175,12 +184,12 @@ class ArcFourier(torch.autograd.Function):
             d_even = g_even[:, 0].unsqueeze(-1).expand(g_even.shape[0], *phi.shape).contiguous()
             return d_even, torch.zeros_like(phi), None, None
         n_c, n = g_even.shape[0], phi.shape[-1]
-        ge, go = g_even.reshape(n_c, ctx.n_modes, -1), g_odd.reshape(ctx.n_modes, -1)  # (C, M, P), (M, P)
-        d_even = phi.new_empty((n_c, ge.shape[2], n))
-        d_odd = phi.new_empty((ge.shape[2], n))
-        for sl, cos_m, sin_m in ArcFourier._blocks(phi, ctx.n_modes):
-            d_even[:, sl] = torch.einsum("cmp,pnm->cpn", ge[:, :, sl], cos_m)
-            d_odd[sl] = torch.einsum("mp,pnm->pn", go[:, sl], sin_m)
+        ge, go = g_even.reshape(n_c, ctx.n_modes, -1, 1), g_odd.reshape(ctx.n_modes, -1, 1)  # (C, M, P, 1), (M, P, 1)
+        d_even = phi.new_zeros((n_c, ge.shape[2], n))
+        d_odd = phi.new_zeros((ge.shape[2], n))
+        for m, cos_m, sin_m in ArcFourier._modes(phi, ctx.n_modes):
+            d_even.addcmul_(ge[:, m], cos_m)
+            d_odd.addcmul_(go[m], sin_m)
         return d_even.reshape(n_c, *phi.shape), d_odd.reshape(phi.shape), None, None
 
 

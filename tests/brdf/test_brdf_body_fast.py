@@ -80,16 +80,16 @@ def _direct_modes(
     return even, odd
 
 
-@pytest.mark.parametrize("n_modes", [2, 7, 41])
+@pytest.mark.parametrize("n_modes", [2, 3, 7, 41, 160])
 def test_arc_fourier_gives_the_direct_sums(n_modes: int) -> None:
-    """The blocked products equal the written-out sums for every mode, pair and channel (the pair count,
-    3·5 = 15, is not a multiple of the block)."""
+    """The recurrence's sums equal the written-out ones for every mode, pair and channel, up to the
+    mode cap of :func:`n_fourier_modes` (160: the recurrence's rounding grows as m²·eps)."""
     h_even, h_odd, phi = _arc_inputs((3, 5), 11)
     even, odd = ArcFourier.apply(h_even, h_odd, phi, n_modes)
     ref_even, ref_odd = _direct_modes(h_even, h_odd, phi, n_modes)
     assert even.shape == (2, n_modes, 3, 5) and odd.shape == (n_modes, 3, 5)
-    torch.testing.assert_close(even, ref_even, rtol=1e-12, atol=1e-12)
-    torch.testing.assert_close(odd, ref_odd, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(even, ref_even, rtol=1e-12, atol=1e-11)
+    torch.testing.assert_close(odd, ref_odd, rtol=1e-12, atol=1e-11)
 
 
 def test_arc_fourier_backward_is_the_transposed_product() -> None:
