@@ -22,7 +22,10 @@ material, each found material matched to the true one of nearest α), α and μ 
 against the fit, the mean normal error over the mask (and over the pixels lit by ≥ K − 3 lights,
 as tests/test_normals.py measures), wall time, and the ratio of each to the single-material run's.
 
-Usage:  python benchmarks/materials.py [--size 80] [--repeat 3] [--cases one_material,...] [--out materials.json]
+``--solver`` sets ``recovery.solver`` of both runs (default: the default solver).
+
+Usage:  python benchmarks/materials.py [--size 80] [--repeat 3] [--cases one_material,...] [--solver joint]
+                                      [--out materials.json]
 """
 
 from __future__ import annotations
@@ -137,9 +140,11 @@ def evaluate(result: NormalsResult, capture: Capture, truth: list[dict[str, floa
     return out
 
 
-def run(size: int, cases: tuple[str, ...] = DEFAULT_CASES, repeat: int = 1) -> dict[str, Any]:
+def run(size: int, cases: tuple[str, ...] = DEFAULT_CASES, repeat: int = 1, solver: str | None = None) -> dict[str, Any]:
+    solver_option = {} if solver is None else {"solver": solver}
     report: dict[str, Any] = {"machine": f"{platform.machine()}, {torch.get_num_threads()} torch threads",
-                              "size": size, "repeat": repeat, "cases": {}}
+                              "size": size, "repeat": repeat, "solver": RecoveryOptions(**solver_option).solver,
+                              "cases": {}}
     runs_of = (("single_material", 1), ("auto", "auto"))
     for name in cases:
         scene, exposure, material = CASES[name]
@@ -150,7 +155,8 @@ def run(size: int, cases: tuple[str, ...] = DEFAULT_CASES, repeat: int = 1) -> d
             for label, materials in (runs_of if rep % 2 == 0 else runs_of[::-1]):
                 torch.manual_seed(0)
                 t0 = time.perf_counter()
-                result = recover_capture(capture, RecoveryOptions(model="fmbrdf", materials=materials))
+                options = RecoveryOptions(model="fmbrdf", materials=materials, **solver_option)
+                result = recover_capture(capture, options)
                 seconds[label].append(time.perf_counter() - t0)
                 runs[label] = evaluate(result, capture, truth, seconds[label][-1])
                 logger.info("%s %s (repeat %d): %s", name, label, rep, json.dumps(runs[label]))
@@ -199,6 +205,8 @@ def main() -> None:
     parser.add_argument("--repeat", type=int, default=1, help="recover each capture this many times (default 1)")
     parser.add_argument("--cases", default=",".join(DEFAULT_CASES),
                         help=f"comma-separated, of {', '.join(CASES)} (default {','.join(DEFAULT_CASES)})")
+    parser.add_argument("--solver", choices=("alternating", "joint"), default=None,
+                        help="recovery.solver of every run (default: the default solver)")
     parser.add_argument("--out", type=Path, default=None, help="write the figures as JSON here")
     args = parser.parse_args()
     cases = tuple(c for c in args.cases.split(",") if c)
@@ -208,7 +216,7 @@ def main() -> None:
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     for noisy in ("polarshape.recover.coarse_to_fine", "polarshape.recover.normal_solver"):
         logging.getLogger(noisy).setLevel(logging.WARNING)
-    report = run(args.size, cases, args.repeat)
+    report = run(args.size, cases, args.repeat, args.solver)
     if args.out is not None:
         atomic_write_text(args.out, json.dumps(report, indent=1) + "\n")
     logger.info("%s", _table(report))
