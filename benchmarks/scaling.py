@@ -197,7 +197,8 @@ def header() -> list[str]:
 
 
 def linear_fit(x: list[float], y: list[float]) -> tuple[float, float, float, float]:
-    """``y ≈ a + c·x`` by least squares: (a, c, R², exponent of y against x over the upper half of the points)."""
+    """``y ≈ a + c·x`` by least squares: (a, c, R², exponent of y against x over the upper half of the distinct
+    x, at least the two largest; nan with fewer than two distinct x)."""
     n = len(x)
     mx, my = sum(x) / n, sum(y) / n
     sxx = sum((v - mx) ** 2 for v in x)
@@ -205,8 +206,10 @@ def linear_fit(x: list[float], y: list[float]) -> tuple[float, float, float, flo
     a = my - c * mx
     ss = sum((v - my) ** 2 for v in y)
     r2 = 1 - sum((v - a - c * u) ** 2 for u, v in zip(x, y)) / ss if ss > 0 else math.nan
-    # the marginal exponent: log-log slope over the upper half of the cases (a fixed cost bends the lower half)
-    top = sorted(x)[(n - 1) // 2]
+    # the marginal exponent: log-log slope over the upper half of the cases (a fixed cost bends the lower half),
+    # of the distinct sizes, so that it spans two at least (1024² and the full frame hold the same sphere)
+    sizes = sorted(set(x))
+    top = sizes[max(min((len(sizes) - 1) // 2, len(sizes) - 2), 0)]
     pts = [(math.log(u), math.log(v)) for u, v in zip(x, y) if u >= top and u > 0 and v > 0]
     lx = sum(p[0] for p in pts) / max(len(pts), 1)
     sxx_l = sum((p[0] - lx) ** 2 for p in pts)
