@@ -432,7 +432,8 @@ def _kappa_decision(fit: JointResult, obs_sub: Observations, names: tuple[str, .
         # spheres and blob the same iterations and material (κ within 0.05) as on grid 33, 30–40 % faster
         # to 1e-5, or stopped once the loss change fell below the alternation's own 0.1 % at a fast
         # rate (:func:`polarshape.recover.joint_solve.settled`: the α 0.8 κ 50 sphere at 256² stops
-        # after 5 of 7 full-table iterations, κ 50.19 instead of 50.27, the loss 1e-5 above); or once its gain
+        # after 5 of 7 full-table iterations, κ 50.19 instead of 50.27, the loss 1e-5 above — with κ searched in
+        # κ itself; in log(1 + κ/5) the polish there takes 2 of the test's iterations); or once its gain
         # over the κ = 0 optimum clearly ends below KAPPA_KEEP_GAIN (:func:`clearly_below`, the test's own
         # rule: on the 256² α 0.03 sphere exposed not to clip, κ 100 from the coarse test gained 22.6 % on full
         # tables and crawled to 23.6 % in 20 iterations, 5.9 s, before κ was dropped; now 3 iterations)
