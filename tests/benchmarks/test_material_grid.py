@@ -3,7 +3,6 @@ history right, and (slow) one tiny case runs end to end and prints its row."""
 
 from __future__ import annotations
 
-import importlib
 import json
 import math
 import subprocess
@@ -18,12 +17,8 @@ BENCHMARKS = Path(__file__).resolve().parents[2] / "benchmarks"
 
 
 @pytest.fixture(scope="module")
-def grid():  # noqa: ANN201 (a script module)
-    sys.path.insert(0, str(BENCHMARKS))
-    try:
-        yield importlib.import_module("material_grid")
-    finally:
-        sys.path.remove(str(BENCHMARKS))
+def grid(benchmark_module):  # noqa: ANN001, ANN201 (a script module)
+    return benchmark_module("material_grid")
 
 
 def test_case_names_round_trip(grid) -> None:  # noqa: ANN001

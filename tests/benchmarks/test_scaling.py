@@ -2,23 +2,14 @@
 
 from __future__ import annotations
 
-import importlib
 import math
-import sys
-from pathlib import Path
 
 import pytest
 
-BENCHMARKS = Path(__file__).resolve().parents[2] / "benchmarks"
-
 
 @pytest.fixture(scope="module")
-def scaling():  # noqa: ANN201 (a script module)
-    sys.path.insert(0, str(BENCHMARKS))
-    try:
-        yield importlib.import_module("scaling")
-    finally:
-        sys.path.remove(str(BENCHMARKS))
+def scaling(benchmark_module):  # noqa: ANN001, ANN201 (a script module)
+    return benchmark_module("scaling")
 
 
 def test_linear_fit_of_a_fixed_cost_plus_a_linear_term(scaling) -> None:  # noqa: ANN001
